@@ -1,0 +1,16 @@
+"""High-fidelity physics of the electro-hydraulic servo actuator (numpy + numba only).
+
+Blocks: :mod:`.commands`, :mod:`.servovalve` (torque motor, first and second stage),
+:mod:`.friction` (Borello), :mod:`.valve` (fluid-dynamic block), :mod:`.jack`; the closed loop
+and the steppable plant in :mod:`.plant`; characteristic maps in :mod:`.maps`; parameters in
+:mod:`.params`.  Nothing here imports rclpy or torch.
+"""
+
+from .commands import Scenario, get_scenario, load_scenarios
+from .params import (ParameterError, PlantParams, default_params, load_params, params_hash,
+                     params_to_dict)
+from .plant import Plant, SimResult, SimulationDiverged, simulate, stability_limit
+
+__all__ = ['Scenario', 'get_scenario', 'load_scenarios', 'ParameterError', 'PlantParams',
+           'default_params', 'load_params', 'params_hash', 'params_to_dict', 'Plant',
+           'SimResult', 'SimulationDiverged', 'simulate', 'stability_limit']

@@ -1,0 +1,51 @@
+"""Mechanical model of the jack, its load and the position sensor.
+
+``MJ XJ'' = P12 AJ - CJ XJ' - Kaer XJ - F_ext - FF`` with Borello friction ``FF``, end stops
+``+-XJM`` that null the velocity, a play (backlash) between jack and surface and a quantised
+position sensor on the surface.
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+from .friction import borello_mass
+from .servovalve import play
+
+__all__ = ['jack_step', 'surface_position', 'quantise']
+
+
+@njit(cache=True, inline='always')
+def jack_step(xj, vj, p12_pa, p, dt):
+    """One step of the jack; returns (XJ, VJ)."""
+    f = (p12_pa * p.jack_area_m2 - p.jack_viscous_n_s_m * vj - p.aero_stiffness_n_m * xj
+         - p.external_force_n)
+    vj, _, _ = borello_mass(vj, f, p.jack_static_friction_n, p.jack_dynamic_friction_n,
+                            p.jack_mass_kg, dt)
+    xj = xj + vj * dt
+    lim = p.jack_stroke_m
+    if xj > lim:
+        xj = lim
+        if vj > 0.0:
+            vj = 0.0
+    elif xj < -lim:
+        xj = -lim
+        if vj < 0.0:
+            vj = 0.0
+    return xj, vj
+
+
+@njit(cache=True, inline='always')
+def surface_position(surface_prev, xj, p):
+    """Surface position behind the jack-to-surface play."""
+    return play(surface_prev, xj, 0.5 * p.surface_backlash_m)
+
+
+@njit(cache=True, inline='always')
+def quantise(x, q):
+    """Sensor reading: ``x`` rounded to the nearest multiple of ``q`` (``q = 0``: exact)."""
+    if q <= 0.0:
+        return x
+    return q * math.floor(x / q + 0.5)

@@ -1,0 +1,208 @@
+"""Characteristic maps of the valve's fluid-dynamic block: P12 for given (XS, Q, overlap,
+clearance).
+
+Transient maps are obtained as the reference does (section 5.1): the spool is held at XS, the
+jack flow Q is imposed (``QM = Q + Clk (P1 - P2)``), both chamber pressures start from zero and
+the fluid-dynamic block is integrated for ``t_end`` (1e-2 s) at ``dt`` (1e-6 s) with the
+capacity ``map_volume_m3``; P12 is read at the end.  Many points are integrated at once: blocks
+of points are spread over the cores and, inside a block, the time loop runs over the points so
+that the compiler vectorises it.
+
+The steady-state solver (:func:`steady_map`) solves the same equations with the time
+derivatives set to zero.  Where the valve is open the transient has settled long before 1e-2 s
+and both agree; near null with a non-zero flow the chamber that the flow fills (or empties)
+only reaches its balance through the tiny clearance leakage, its time constant is far longer
+than 1e-2 s and the transient P12 is still on its way - it is the pressure peak "above supply
+near null" of the reference's curves - while the steady solution may lie far beyond it (or at
+the vapour pressure).  :func:`settling_mask` tells which points have settled.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from .params import PlantParams, default_params, replace
+from .valve import steady_pressures, valve_constants
+
+__all__ = ['WEAR_RANGES', 'spool_grid', 'transient_map', 'steady_map', 'MapResult', 'settling_mask']
+
+_BLOCK = 64
+
+#: Ranges [m] of the wear parameters swept by the map databases (the nominal values of
+#: ``config/eha_params.yaml`` lie inside): overlap (supply = return edges) and radial clearance.
+WEAR_RANGES = {'overlap_m': (-2e-6, 6e-6), 'radial_clearance_m': (1e-6, 6e-6)}
+
+
+def spool_grid(n: int = 133, stroke_m: float | None = None, density: float = 4.0,
+               ) -> np.ndarray:
+    """``n`` spool positions over ``+-stroke_m``, denser near null.
+
+    ``x = stroke sinh(a u) / sinh(a)`` for ``u`` uniform in [-1, 1]: the spacing near null
+    is ``a cosh(a)`` times (27x for the default ``a = 4``) finer than at the ends.  Odd ``n``
+    includes ``x = 0``; the grid is antisymmetric.
+    """
+    if n < 2:
+        raise ValueError('spool_grid needs at least 2 points')
+    stroke = default_params().spool_stroke_m if stroke_m is None else float(stroke_m)
+    u = np.linspace(-1.0, 1.0, n)
+    x = stroke * np.sinh(density * u) / math.sinh(density)
+    x[n // 2] = 0.0 if n % 2 else x[n // 2]
+    return 0.5 * (x - x[::-1])  # exact antisymmetry
+
+
+@njit(cache=True, inline='always')
+def _edge(opening, c2, k_rl, k_r4, k_bl):
+    if opening > 0.0:
+        rl = 0.0
+        g = 1.0 / (c2 + opening * opening)
+    else:
+        rl = -k_rl * opening
+        g = 1.0 / c2
+    return rl, rl * rl + k_bl * g * g, k_r4 * g
+
+
+@njit(cache=True, parallel=True)
+def _transient_kernel(xs, q, lap_s, lap_r, clr, consts, n_steps, dt, out_p1, out_p2):
+    """Integrate every point from zero pressure for ``n_steps`` steps."""
+    (ps, pr, pvap, kvol, clk, mu, rho, w, cd, ecc, lc, reynolds) = (
+        consts[0], consts[1], consts[2], consts[3], consts[4], consts[5], consts[6],
+        consts[7], consts[8], consts[9], consts[10], consts[11])
+    n = xs.size
+    n_blocks = (n + _BLOCK - 1) // _BLOCK
+    k_r4 = 2.0 * rho / (cd * cd * w * w)
+    k_bl = mu * mu * lc * lc / (16.0 * cd * cd * w * w) if reynolds != 0.0 else 0.0
+    for b in prange(n_blocks):
+        i0 = b * _BLOCK
+        m = min(_BLOCK, n - i0)
+        # per point: RL and (RL^2 + B_lam) and R4 of edges 1S, 1R, 2S, 2R
+        co = np.empty((12, _BLOCK))
+        qq = np.empty(_BLOCK)
+        p1t = np.zeros(_BLOCK)
+        p2t = np.zeros(_BLOCK)
+        for j in range(m):
+            i = i0 + j
+            c = clr[i]
+            c2 = c * c
+            k_rl = 12.0 * mu / (w * c * c * c * (1.0 + 1.5 * ecc * ecc))
+            x = xs[i]
+            e = _edge(x - lap_s[i], c2, k_rl, k_r4, k_bl)
+            co[0, j], co[1, j], co[2, j] = e
+            e = _edge(-x - lap_r[i], c2, k_rl, k_r4, k_bl)
+            co[3, j], co[4, j], co[5, j] = e
+            e = _edge(-x - lap_s[i], c2, k_rl, k_r4, k_bl)
+            co[6, j], co[7, j], co[8, j] = e
+            e = _edge(x - lap_r[i], c2, k_rl, k_r4, k_bl)
+            co[9, j], co[10, j], co[11, j] = e
+            qq[j] = q[i]
+        for _ in range(n_steps):
+            for j in range(m):
+                p1 = max(pvap, p1t[j])
+                p2 = max(pvap, p2t[j])
+                a = ps - p1
+                bb = p1 - pr
+                da = max(co[0, j] + math.sqrt(co[1, j] + co[2, j] * abs(a)), 1e-300)
+                db = max(co[3, j] + math.sqrt(co[4, j] + co[5, j] * abs(bb)), 1e-300)
+                q1l = 2.0 * (a * db - bb * da) / (da * db)
+                a2 = p2 - pr
+                b2 = ps - p2
+                da2 = max(co[9, j] + math.sqrt(co[10, j] + co[11, j] * abs(a2)), 1e-300)
+                db2 = max(co[6, j] + math.sqrt(co[7, j] + co[8, j] * abs(b2)), 1e-300)
+                q2l = 2.0 * (a2 * db2 - b2 * da2) / (da2 * db2)
+                qm = qq[j] + clk * (p1 - p2)
+                p1t[j] += (q1l - qm) * kvol * dt
+                p2t[j] += (qm - q2l) * kvol * dt
+        for j in range(m):
+            out_p1[i0 + j] = max(pvap, p1t[j])
+            out_p2[i0 + j] = max(pvap, p2t[j])
+
+
+def _consts(p: PlantParams) -> np.ndarray:
+    return np.array([
+        p.supply_pressure_pa, p.return_pressure_pa, p.vapour_pressure_pa,
+        p.bulk_modulus_pa / p.map_volume_m3, p.leakage_coeff_m3_s_pa,
+        p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s, p.fluid_density_kg_m3,
+        p.port_width_m, p.discharge_coefficient * (1.0 - p.valve_degradation),
+        p.eccentricity_ratio, p.critical_flow_number, 1.0 if p.cd_model == 0.0 else 0.0])
+
+
+class MapResult(dict):
+    """``p1_pa``, ``p2_pa``, ``p12_pa`` arrays with the broadcast shape of the inputs."""
+
+
+def _broadcast(xs, q, overlap, clearance, p):
+    lap = p.overlap_supply_m if overlap is None else overlap
+    clr = p.radial_clearance_m if clearance is None else clearance
+    arrs = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (xs, q, lap, clr)))
+    shape = arrs[0].shape
+    flat = [np.ascontiguousarray(a.ravel()) for a in arrs]
+    if not np.all(flat[3] > 0):
+        raise ValueError('radial clearance must be positive at every map point')
+    for a, name in zip(flat, ('spool position', 'flow', 'overlap', 'clearance')):
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f'{name} must be finite at every map point')
+    return shape, flat
+
+
+def transient_map(xs_m, q_m3_s, overlap_m=None, clearance_m=None, params=None,
+                  t_end_s: float = 1e-2, dt_s: float = 1e-6) -> MapResult:
+    """P1, P2, P12 after the reference's map transient, for broadcastable arrays of spool
+    position [m], imposed flow [m^3/s], overlap [m] (supply = return edges) and clearance [m].
+
+    ``overlap_m``/``clearance_m`` default to the parameters' values.
+    """
+    p = params if params is not None else default_params()
+    shape, (xs, q, lap, clr) = _broadcast(xs_m, q_m3_s, overlap_m, clearance_m, p)
+    n_steps = int(round(t_end_s / dt_s))
+    if n_steps < 1:
+        raise ValueError('t_end_s must cover at least one step of dt_s')
+    p1 = np.empty(xs.size)
+    p2 = np.empty(xs.size)
+    _transient_kernel(xs, q, lap, lap, clr, _consts(p), n_steps, float(dt_s), p1, p2)
+    if not (np.all(np.isfinite(p1)) and np.all(np.isfinite(p2))):
+        bad = int(np.flatnonzero(~(np.isfinite(p1) & np.isfinite(p2)))[0])
+        raise FloatingPointError(
+            f'map transient diverged at xs={xs[bad]:g} m, q={q[bad]:g} m^3/s, '
+            f'overlap={lap[bad]:g} m, clearance={clr[bad]:g} m: reduce dt_s')
+    return MapResult(p1_pa=p1.reshape(shape), p2_pa=p2.reshape(shape),
+                     p12_pa=(p1 - p2).reshape(shape))
+
+
+@njit(cache=True, parallel=True)
+def _steady_kernel(xs, q, lap, clr, p_list, idx, p_max, out_p1, out_p2):
+    for i in prange(xs.size):
+        p1, p2 = steady_pressures(xs[i], q[i], p_list[idx[i]], p_max)
+        out_p1[i] = p1
+        out_p2[i] = p2
+
+
+def steady_map(xs_m, q_m3_s, overlap_m=None, clearance_m=None, params=None,
+               p_max_pa: float | None = None) -> MapResult:
+    """Steady-state P1, P2, P12 for the same inputs as :func:`transient_map`.
+
+    Pressures are searched in ``[PVap, p_max_pa]`` (default 20 x supply).
+    """
+    p = params if params is not None else default_params()
+    shape, (xs, q, lap, clr) = _broadcast(xs_m, q_m3_s, overlap_m, clearance_m, p)
+    pmax = 20.0 * p.supply_pressure_pa if p_max_pa is None else float(p_max_pa)
+    # one parameter tuple per distinct (overlap, clearance)
+    wear = np.stack([lap, clr], axis=1)
+    uniq, idx = np.unique(wear, axis=0, return_inverse=True)
+    plist = [replace(p, overlap_supply_m=float(a), overlap_return_m=float(a),
+                     radial_clearance_m=float(c)) for a, c in uniq]
+    from numba.typed import List
+    typed = List(plist)
+    p1 = np.empty(xs.size)
+    p2 = np.empty(xs.size)
+    _steady_kernel(xs, q, lap, clr, typed, idx.astype(np.int64).ravel(), pmax, p1, p2)
+    return MapResult(p1_pa=p1.reshape(shape), p2_pa=p2.reshape(shape),
+                     p12_pa=(p1 - p2).reshape(shape))
+
+
+def settling_mask(transient: MapResult, steady: MapResult, rtol: float = 0.01,
+                  atol_pa: float = 1e4) -> np.ndarray:
+    """Points where the transient P12 is within ``rtol``/``atol_pa`` of the steady P12."""
+    return np.abs(transient['p12_pa'] - steady['p12_pa']) <= atol_pa + rtol * np.abs(
+        steady['p12_pa'])

@@ -1,0 +1,215 @@
+"""Fluid-dynamic model of the servovalve's second stage (metering edges and outlet chambers).
+
+Four metering edges connect supply S and return R to the outlets 1 and 2.  Each edge is an
+annular passage: while the spool covers it (displacement inside the overlap) fluid leaks
+through the radial clearance ``c`` over the covered length ``X0`` (laminar resistance ``RL``)
+and through the annulus ``w*c`` (quadratic resistance ``RQ``); once uncovered, the passage
+is the truncated cone ``w*sqrt(c^2 + x^2)`` with ``RL = 0``::
+
+    RL = 12 mu X0 / (w c^3 (1 + 1.5 (e/c)^2))          RQ = rho / (2 Cd^2 A^2)
+    dp = RL Q + RQ Q |Q|   =>   Q = 2 dp / (RL + sqrt(RL^2 + 4 RQ |dp|))
+
+The last form is the root of the quadratic written so that it loses no digits when
+``RL^2 >> 4 RQ |dp|`` (covered edges).
+
+Discharge coefficient.  ``cd_model = constant``: ``Cd = Cd_inf``.  ``cd_model = reynolds``:
+``Cd = Cd_inf * x / sqrt(1 + x^2)`` with ``x = 2 lambda / lambda_crit`` and the flow number
+``lambda = (D_h / nu) sqrt(2 |dp| / rho)``, ``D_h = 2 h`` the hydraulic diameter of the gap
+``h``.  It has the laminar (``Cd ~ lambda``) and turbulent (``Cd -> Cd_inf``) limits of the
+usual ``tanh`` law and lets ``4 RQ |dp|`` be written without ``Cd``::
+
+    4 RQ |dp| = B_lam + R4 |dp|,   R4 = 2 rho / (Cd_inf^2 A^2),
+                                   B_lam = mu^2 lambda_crit^2 / (16 Cd_inf^2 w^2 h^4)
+
+so one square root gives the flow in either model (``B_lam = 0`` for a constant Cd).
+``valve_degradation`` (Khsv) scales ``Cd_inf`` by ``1 - Khsv`` (silted metering edges).
+
+Chambers.  ``dP1T/dt = (Q1L - QM) Bet/Vol``, ``dP2T/dt = (QM - Q2L) Bet/Vol`` with
+``Q1L = Q1S - Q1R`` (net into 1), ``Q2L = Q2R - Q2S`` (net out of 2) and
+``QM = AJ dXJ/dt + Clk (P1 - P2)``.  Cavitation: ``P = max(PVap, PT)``; the unclipped
+``PT`` keeps the memory of the vapour volume, as in the reference.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+__all__ = ['valve_constants', 'net_flow', 'edge_coefficients', 'orifice_flow', 'valve_coefficients', 'valve_flows',
+           'chamber_step', 'orifice_pressure_drop', 'steady_pressures']
+
+_TINY = 1e-300
+
+
+@njit(cache=True, inline='always')
+def valve_constants(p):
+    """Spool-independent constants of the metering edges, computed once per run.
+
+    Returns ``(c^2, k_rl, k_r4, k_bl, OSSV, ORSV)`` with ``RL = k_rl X0``,
+    ``R4 = k_r4 / h^2`` and ``B_lam = k_bl / h^4``.
+    """
+    c = p.radial_clearance_m
+    w = p.port_width_m
+    cd = p.discharge_coefficient * (1.0 - p.valve_degradation)
+    mu = p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s
+    ecc = p.eccentricity_ratio
+    k_rl = 12.0 * mu / (w * c * c * c * (1.0 + 1.5 * ecc * ecc))
+    k_r4 = 2.0 * p.fluid_density_kg_m3 / (cd * cd * w * w)
+    if p.cd_model == 0.0:
+        lc = p.critical_flow_number
+        k_bl = mu * mu * lc * lc / (16.0 * cd * cd * w * w)
+    else:
+        k_bl = 0.0
+    return c * c, k_rl, k_r4, k_bl, p.overlap_supply_m, p.overlap_return_m
+
+
+@njit(cache=True, inline='always')
+def edge_coefficients(opening_m, vc):
+    """(RL, B_lam, R4) of one metering edge; ``vc`` from :func:`valve_constants`.
+
+    ``opening_m`` is how far the spool has passed the edge's lap: > 0 open, <= 0 covered
+    (the covered length is ``-opening_m``).
+    """
+    c2, k_rl, k_r4, k_bl = vc[0], vc[1], vc[2], vc[3]
+    if opening_m > 0.0:
+        rl = 0.0
+        g = 1.0 / (c2 + opening_m * opening_m)
+    else:
+        rl = -k_rl * opening_m
+        g = 1.0 / c2
+    return rl, k_bl * g * g, k_r4 * g
+
+
+@njit(cache=True, inline='always')
+def orifice_flow(dp_pa, rl, blam, r4):
+    """Flow [m^3/s] through an edge for a pressure drop ``dp_pa`` (same sign as ``dp_pa``)."""
+    den = rl + math.sqrt(rl * rl + blam + r4 * abs(dp_pa))
+    return 2.0 * dp_pa / max(den, _TINY)
+
+
+@njit(cache=True, inline='always')
+def net_flow(dp_in, rl_in, bl_in, r4_in, dp_out, rl_out, bl_out, r4_out):
+    """``orifice_flow(dp_in, ...) - orifice_flow(dp_out, ...)`` with a single division."""
+    d_in = max(rl_in + math.sqrt(rl_in * rl_in + bl_in + r4_in * abs(dp_in)), _TINY)
+    d_out = max(rl_out + math.sqrt(rl_out * rl_out + bl_out + r4_out * abs(dp_out)), _TINY)
+    return 2.0 * (dp_in * d_out - dp_out * d_in) / (d_in * d_out)
+
+
+def orifice_pressure_drop(q_m3_s, dp_pa, rl, blam, r4):
+    """Pressure drop ``RL Q + RQ Q|Q|`` with ``RQ`` evaluated at the drop ``dp_pa``.
+
+    With the Reynolds-dependent Cd, ``RQ`` depends on the drop itself; passing the drop that
+    produced ``q_m3_s`` makes this the exact inverse of :func:`orifice_flow`.
+    """
+    adp = np.abs(dp_pa)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        rq = np.where(adp > 0, (blam / np.where(adp > 0, adp, 1.0) + r4) / 4.0, r4 / 4.0)
+    return rl * q_m3_s + rq * q_m3_s * np.abs(q_m3_s)
+
+
+@njit(cache=True, inline='always')
+def valve_coefficients(xs_m, vc):
+    """Edge coefficients of the four edges 1S, 1R, 2S, 2R at spool position ``xs_m``."""
+    oss = vc[4]
+    ors = vc[5]
+    rl1s, bl1s, r41s = edge_coefficients(xs_m - oss, vc)
+    rl1r, bl1r, r41r = edge_coefficients(-xs_m - ors, vc)
+    rl2s, bl2s, r42s = edge_coefficients(-xs_m - oss, vc)
+    rl2r, bl2r, r42r = edge_coefficients(xs_m - ors, vc)
+    return (rl1s, bl1s, r41s, rl1r, bl1r, r41r, rl2s, bl2s, r42s, rl2r, bl2r, r42r)
+
+
+@njit(cache=True, inline='always')
+def valve_flows(xs_m, p1_pa, p2_pa, p):
+    """(Q1L, Q2L) [m^3/s]: net flow into outlet 1 and net flow out of outlet 2."""
+    (rl1s, bl1s, r41s, rl1r, bl1r, r41r,
+     rl2s, bl2s, r42s, rl2r, bl2r, r42r) = valve_coefficients(xs_m, valve_constants(p))
+    ps = p.supply_pressure_pa
+    pr = p.return_pressure_pa
+    q1s = orifice_flow(ps - p1_pa, rl1s, bl1s, r41s)
+    q1r = orifice_flow(p1_pa - pr, rl1r, bl1r, r41r)
+    q2s = orifice_flow(ps - p2_pa, rl2s, bl2s, r42s)
+    q2r = orifice_flow(p2_pa - pr, rl2r, bl2r, r42r)
+    return q1s - q1r, q2r - q2s
+
+
+@njit(cache=True, inline='always')
+def chamber_step(p1t, p2t, q1l, q2l, qm, stiffness_pa_m3, pvap_pa, dt):
+    """Advance the unclipped chamber pressures; return (P1T, P2T, P1, P2).
+
+    ``stiffness_pa_m3`` is ``Bet/Vol``; P1, P2 are clipped at the vapour pressure.
+    """
+    p1t = p1t + (q1l - qm) * stiffness_pa_m3 * dt
+    p2t = p2t + (qm - q2l) * stiffness_pa_m3 * dt
+    return p1t, p2t, max(pvap_pa, p1t), max(pvap_pa, p2t)
+
+
+# --- steady state -------------------------------------------------------------------------------
+
+@njit(cache=True)
+def _chamber1_pressure(xs, qm, p, lo, hi):
+    """P1 with Q1L(P1) = qm (Q1L decreases with P1), clipped at PVap."""
+    f_lo = valve_flows(xs, lo, lo, p)[0] - qm
+    if f_lo <= 0.0:
+        return lo
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if valve_flows(xs, mid, mid, p)[0] - qm > 0.0:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-12 * max(1.0, abs(mid)):
+            break
+    return 0.5 * (lo + hi)
+
+
+@njit(cache=True)
+def _chamber2_pressure(xs, qm, p, lo, hi):
+    """P2 with Q2L(P2) = qm (Q2L increases with P2), clipped at PVap."""
+    f_lo = valve_flows(xs, lo, lo, p)[1] - qm
+    if f_lo >= 0.0:
+        return lo
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if valve_flows(xs, mid, mid, p)[1] - qm < 0.0:
+            lo = mid
+        else:
+            hi = mid
+        if hi - lo <= 1e-12 * max(1.0, abs(mid)):
+            break
+    return 0.5 * (lo + hi)
+
+
+@njit(cache=True)
+def steady_pressures(xs_m, q_m3_s, p, p_max_pa):
+    """Steady (P1, P2) [Pa] for spool ``xs_m`` and imposed jack flow ``q_m3_s``.
+
+    Solves ``Q1L(P1) = QM = Q2L(P2)`` with ``QM = q + Clk (P1 - P2)``.  For a given QM each
+    chamber pressure is unique (each chamber's net inflow is monotonic in its pressure), and
+    ``QM - q - Clk (P1(QM) - P2(QM))`` increases with QM, so nested bisections find the unique
+    solution.  A chamber that would need a pressure below PVap sits at PVap (cavitating);
+    pressures are searched up to ``p_max_pa``.
+    """
+    lo_p = p.vapour_pressure_pa
+    clk = p.leakage_coeff_m3_s_pa
+    # bracket QM: flows achievable lie between the extremes of both chambers' curves
+    qmin = min(valve_flows(xs_m, p_max_pa, p_max_pa, p)[0], valve_flows(xs_m, lo_p, lo_p, p)[1])
+    qmax = max(valve_flows(xs_m, lo_p, lo_p, p)[0], valve_flows(xs_m, p_max_pa, p_max_pa, p)[1])
+    qa = min(qmin, q_m3_s + clk * (lo_p - p_max_pa)) - 1e-12
+    qb = max(qmax, q_m3_s + clk * (p_max_pa - lo_p)) + 1e-12
+    p1 = lo_p
+    p2 = lo_p
+    for _ in range(200):
+        qm = 0.5 * (qa + qb)
+        p1 = _chamber1_pressure(xs_m, qm, p, lo_p, p_max_pa)
+        p2 = _chamber2_pressure(xs_m, qm, p, lo_p, p_max_pa)
+        r = qm - q_m3_s - clk * (p1 - p2)
+        if r > 0.0:
+            qb = qm
+        else:
+            qa = qm
+        if qb - qa <= 1e-16 + 1e-13 * abs(qm):
+            break
+    return p1, p2
