@@ -100,51 +100,57 @@ def plant_steps(p, state, i_cmd, noise, n_steps, dt):
     gqf = p.first_stage_flow_gain_m2_s * math.sqrt(sfac)
     c_eq = p.spool_damping_n_s_m + p.spool_end_area_m2 ** 2 * gpf / gqf
     for k in range(n_steps):
-        s['play'] = play(s['play'], i_cmd, p.hysteresis_a)
+        old = dict(s)
+        s['play'] = play(old['play'], i_cmd, p.hysteresis_a)
         i = min(max(s['play'] + p.offset_a + noise[k], -p.current_limit_a), p.current_limit_a)
-        f = torque_force(p, i, s['xf'])
-        u = s['xf'] + s['xs']
+        f = torque_force(p, i, old['xf'])
+        q1l, q2l = valve_flows(p, old['xs'], old['p1'], old['p2'])
+        q1l, q2l = float(q1l), float(q2l)
+        s['qj'] = 0.5 * (q1l + q2l)
+        # spool (massless, Borello) driven by the old flapper position and this step's flow
+        fs = p.spool_end_area_m2 * gpf * old['xf'] - p.flow_force_coeff_n_s_m3 * s['qj']
+        s['vs'] = borello_massless(old['vs'], fs, p.spool_static_friction_n,
+                                   p.spool_dynamic_friction_n, c_eq)
+        s['xs'] = old['xs'] + s['vs'] * dt
+        if abs(s['xs']) > p.spool_stroke_m:
+            s['xs'] = math.copysign(p.spool_stroke_m, s['xs'])
+            s['vs'] = 0.0
+        # flapper, semi-implicit
+        u = old['xf'] + old['xs']
         hb = p.feedback_backlash_m / 2
         dz = u - hb if u > hb else (u + hb if u < -hb else 0.0)
-        acc = (f - cf * s['vf'] - p.flapper_stiffness_n_m * s['xf']
+        acc = (f - cf * old['vf'] - p.flapper_stiffness_n_m * old['xf']
                - p.feedback_spring_stiffness_n_m * dz) / p.flapper_mass_kg
-        s['vf'] += acc * dt
-        s['xf'] += s['vf'] * dt
+        s['vf'] = old['vf'] + acc * dt
+        s['xf'] = old['xf'] + s['vf'] * dt
         if abs(s['xf']) > p.flapper_stroke_m:
             s['xf'] = math.copysign(p.flapper_stroke_m, s['xf'])
             if s['vf'] * s['xf'] > 0:
                 s['vf'] = 0.0
-        fs = p.spool_end_area_m2 * gpf * s['xf'] - p.flow_force_coeff_n_s_m3 * s['qj']
-        s['vs'] = borello_massless(s['vs'], fs, p.spool_static_friction_n,
-                                   p.spool_dynamic_friction_n, c_eq)
-        s['xs'] += s['vs'] * dt
-        if abs(s['xs']) > p.spool_stroke_m:
-            s['xs'] = math.copysign(p.spool_stroke_m, s['xs'])
-            s['vs'] = 0.0
-        q1l, q2l = valve_flows(p, s['xs'], s['p1'], s['p2'])
-        q1l, q2l = float(q1l), float(q2l)
-        s['qj'] = 0.5 * (q1l + q2l)
-        fj = ((s['p1'] - s['p2']) * p.jack_area_m2 - p.jack_viscous_n_s_m * s['vj']
-              - p.aero_stiffness_n_m * s['xj'] - p.external_force_n)
-        vj_old = s['vj']
+        # jack, semi-implicit, Borello
+        p12 = old['p1'] - old['p2']
+        fj = (p12 * p.jack_area_m2 - p.jack_viscous_n_s_m * old['vj']
+              - p.aero_stiffness_n_m * old['xj'] - p.external_force_n)
+        vj_old = old['vj']
         if vj_old == 0.0:
             s['vj'] = 0.0 if abs(fj) <= p.jack_static_friction_n else (
                 fj - p.jack_static_friction_n * np.sign(fj)) / p.jack_mass_kg * dt
         else:
             vn = vj_old + (fj - p.jack_dynamic_friction_n * np.sign(vj_old)) / p.jack_mass_kg * dt
             s['vj'] = 0.0 if vn * vj_old < 0 else vn
-        s['xj'] += s['vj'] * dt
+        s['xj'] = old['xj'] + s['vj'] * dt
         if abs(s['xj']) > p.jack_stroke_m:
             s['xj'] = math.copysign(p.jack_stroke_m, s['xj'])
             if s['vj'] * s['xj'] > 0:
                 s['vj'] = 0.0
-        qm = p.jack_area_m2 * s['vj'] + p.leakage_coeff_m3_s_pa * (s['p1'] - s['p2'])
+        # chambers from the old jack velocity and pressures
+        qm = p.jack_area_m2 * vj_old + p.leakage_coeff_m3_s_pa * p12
         kv = p.bulk_modulus_pa / p.chamber_volume_m3
-        s['p1t'] += (q1l - qm) * kv * dt
-        s['p2t'] += (qm - q2l) * kv * dt
+        s['p1t'] = old['p1t'] + (q1l - qm) * kv * dt
+        s['p2t'] = old['p2t'] + (qm - q2l) * kv * dt
         s['p1'] = max(p.vapour_pressure_pa, s['p1t'])
         s['p2'] = max(p.vapour_pressure_pa, s['p2t'])
-        s['surf'] = play(s['surf'], s['xj'], p.surface_backlash_m / 2)
+        s['surf'] = play(old['surf'], s['xj'], p.surface_backlash_m / 2)
     return s
 
 

@@ -48,4 +48,4 @@ def quantise(x, q):
     """Sensor reading: ``x`` rounded to the nearest multiple of ``q`` (``q = 0``: exact)."""
     if q <= 0.0:
         return x
-    return q * math.floor(x / q + 0.5)
+    return q * math.floor(x * (1.0 / q) + 0.5)

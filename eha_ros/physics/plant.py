@@ -1,9 +1,10 @@
 """The actuator plant and the closed loop: state layout, fixed-step kernels, public wrappers.
 
-One plant step of ``dt`` (explicit, in this order, as the reference's block diagram):
-torque motor (hysteresis, offset, noise, saturation, force) -> first stage -> spool (Borello)
--> metering edges (flows at the current pressures) -> jack (Borello) -> chamber pressures
-(cavitation clip) -> surface play -> sensor.
+One plant step of ``dt`` is a forward-Euler step of the reference's block diagram: torque
+motor (hysteresis, offset, noise, saturation, force), metering-edge flows, spool (Borello,
+flow force), first stage, jack (Borello), chamber pressures (cavitation clip), surface play,
+all evaluated at the state at the start of the step; the two second-order bodies (flapper,
+jack) update velocity before position (semi-implicit Euler).
 
 The controller runs every ``controller_period_s`` (a whole number of plant steps; by default
 every step, as the reference's continuous-time PID) on the quantised sensor reading, and holds
@@ -186,18 +187,23 @@ def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, n
                     row += 1
                 until_rec -= 1
             until_tick -= 1
+        # every derivative from the state at the start of the step (forward Euler, as a
+        # fixed-step ode1 solver evaluates a block diagram); the blocks are then independent
+        # within a step, which lets the processor overlap them
         k = int(n * steps_per_noise)
         y, i = coil_current(y, i_cmd, noise[k], p)
         f = torque_motor_force(i, xf, p)
-        xf, vf = flapper_step(xf, vf, xs, f, cf, p, dt)
-        xs, vs = spool_step(xs, vs, xf, qj, drive, c_eq, p, dt)
         (rl1s, bl1s, r41s, rl1r, bl1r, r41r,
          rl2s, bl2s, r42s, rl2r, bl2r, r42r) = valve_coefficients(xs, vc)
         q1l = net_flow(ps - p1, rl1s, bl1s, r41s, p1 - pr, rl1r, bl1r, r41r)
         q2l = net_flow(p2 - pr, rl2r, bl2r, r42r, ps - p2, rl2s, bl2s, r42s)
         qj = 0.5 * (q1l + q2l)
-        xj, vj = jack_step(xj, vj, p1 - p2, p, dt)
-        qm = aj * vj + clk * (p1 - p2)
+        xs_old = xs
+        xs, vs = spool_step(xs, vs, xf, qj, drive, c_eq, p, dt)
+        xf, vf = flapper_step(xf, vf, xs_old, f, cf, p, dt)
+        p12 = p1 - p2
+        qm = aj * vj + clk * p12
+        xj, vj = jack_step(xj, vj, p12, p, dt)
         p1t, p2t, p1, p2 = chamber_step(p1t, p2t, q1l, q2l, qm, kvol, pvap, dt)
         surf = surface_position(surf, xj, p)
         done = j + 1
