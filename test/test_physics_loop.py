@@ -168,6 +168,36 @@ def test_bad_run_arguments():
         Plant(P).advance(float('inf'), 10)
 
 
+def test_fluid_function_replaces_the_fluid_block():
+    """A fluid function P12 = f(XS, QJ, overlap, clearance), QJ = AJ dXJ/dt, drives the jack in
+    place of the chambers (evaluated on the start-of-step state, reported as mid +- P12/2);
+    with a linearised valve (flow gain Kq, flow-pressure coefficient Kc) the loop tracks."""
+    from numba import njit
+
+    @njit
+    def linear_valve(data, xs, q, lap, clr):
+        kq, kc = data[0][0], data[0][1]
+        return (kq * xs - q) / kc
+
+    class Linear:
+        kernel = linear_valve
+        data = (np.array([0.9, 1e-11]),)
+
+    plant = Plant(P, fluid=Linear())
+    plant.advance(5e-4, 999)
+    s0 = plant.snapshot()
+    plant.advance(5e-4, 1)
+    s1 = plant.snapshot()
+    expect = (0.9 * s0['spool_position_m'] - P.jack_area_m2 * s0['jack_velocity_m_s']) / 1e-11
+    assert_allclose(s1['p12_pa'], expect, rtol=1e-12)
+    mid = 0.5 * (P.supply_pressure_pa + P.return_pressure_pa)
+    assert_allclose(s1['p1_pa'] + s1['p2_pa'], 2 * mid, rtol=1e-12)
+    r = simulate(P, 'step_0p1', fluid=Linear())
+    assert abs(r['jack_position_m'][-1] - 1e-4) < _band(P)
+    with pytest.raises(ParameterError, match='kernel and data'):
+        simulate(P, 'step_0p1', duration_s=0.01, fluid=object())
+
+
 def test_state_names_cover_the_state():
     assert len(STATE_NAMES) == initial_state(P).size
     s = initial_state(P)

@@ -123,9 +123,22 @@ def _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q
 
 
 @njit(cache=True)
+def no_fluid_block(data, xs_m, q_m3_s, overlap_m, clearance_m):
+    """Placeholder fluid function of the high-fidelity path (never called there)."""
+    return 0.0
+
+
+NO_FLUID_DATA = (np.zeros(1),)
+
+
+@njit(cache=True)
 def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, n_steps,
-         steps_per_tick, rec_every, rec):
+         steps_per_tick, rec_every, rec, fluid_fn, fluid_data, use_fluid_fn):
     """Advance the plant state ``s`` (in place) by ``n_steps`` steps of ``dt``.
+
+    ``use_fluid_fn``: the fluid-dynamic block is replaced by a surrogate
+    ``P12 = fluid_fn(fluid_data, XS, QJ, overlap, clearance)`` with the load flow imposed by the
+    jack, ``QJ = AJ dXJ/dt``; P1, P2 are then reported as mid-pressure +- P12/2.
 
     ``steps_per_tick = 0``: open loop, the coil current command ``i_cmd`` is held.  Otherwise
     the controller (state ``ctrl``) runs every ``steps_per_tick`` steps on the quantised
@@ -146,6 +159,9 @@ def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, n
     clk = p.leakage_coeff_m3_s_pa
     q = p.sensor_resolution_m
     vc = valve_constants(p)
+    lap = p.overlap_supply_m
+    clr = p.radial_clearance_m
+    pmid = 0.5 * (ps + pr)
     steps_per_noise = dt / noise_dt
     period = steps_per_tick * dt
     inv_period = 1.0 / period if steps_per_tick > 0 else 0.0
@@ -193,18 +209,30 @@ def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, n
         k = int(n * steps_per_noise)
         y, i = coil_current(y, i_cmd, noise[k], p)
         f = torque_motor_force(i, xf, p)
-        (rl1s, bl1s, r41s, rl1r, bl1r, r41r,
-         rl2s, bl2s, r42s, rl2r, bl2r, r42r) = valve_coefficients(xs, vc)
-        q1l = net_flow(ps - p1, rl1s, bl1s, r41s, p1 - pr, rl1r, bl1r, r41r)
-        q2l = net_flow(p2 - pr, rl2r, bl2r, r42r, ps - p2, rl2s, bl2s, r42s)
-        qj = 0.5 * (q1l + q2l)
+        if use_fluid_fn:
+            qj = aj * vj
+            q1l = qj
+            q2l = qj
+            p12 = fluid_fn(fluid_data, xs, qj, lap, clr)
+            p1 = pmid + 0.5 * p12
+            p2 = pmid - 0.5 * p12
+        else:
+            (rl1s, bl1s, r41s, rl1r, bl1r, r41r,
+             rl2s, bl2s, r42s, rl2r, bl2r, r42r) = valve_coefficients(xs, vc)
+            q1l = net_flow(ps - p1, rl1s, bl1s, r41s, p1 - pr, rl1r, bl1r, r41r)
+            q2l = net_flow(p2 - pr, rl2r, bl2r, r42r, ps - p2, rl2s, bl2s, r42s)
+            qj = 0.5 * (q1l + q2l)
+            p12 = p1 - p2
         xs_old = xs
         xs, vs = spool_step(xs, vs, xf, qj, drive, c_eq, p, dt)
         xf, vf = flapper_step(xf, vf, xs_old, f, cf, p, dt)
-        p12 = p1 - p2
         qm = aj * vj + clk * p12
         xj, vj = jack_step(xj, vj, p12, p, dt)
-        p1t, p2t, p1, p2 = chamber_step(p1t, p2t, q1l, q2l, qm, kvol, pvap, dt)
+        if use_fluid_fn:
+            p1t = p1  # the surrogate's pressures at the start of this step
+            p2t = p2
+        else:
+            p1t, p2t, p1, p2 = chamber_step(p1t, p2t, q1l, q2l, qm, kvol, pvap, dt)
         surf = surface_position(surf, xj, p)
         done = j + 1
         chk = xf + vf + xs + p1t + p2t + xj + vj
@@ -309,11 +337,22 @@ def stability_limit(p: PlantParams) -> tuple[float, str]:
     return min(stability_limits(p), key=lambda x: x[0])
 
 
-def check_dt(p: PlantParams, dt_s: float) -> None:
-    """Refuse a non-positive step or one beyond the stability limit."""
+def _fluid_args(fluid):
+    if fluid is None:
+        return no_fluid_block, NO_FLUID_DATA, False
+    try:
+        return fluid.kernel, tuple(fluid.data), True
+    except AttributeError:
+        raise ParameterError('fluid must provide kernel and data (a FluidSurrogate)') from None
+
+
+def check_dt(p: PlantParams, dt_s: float, surrogate: bool = False) -> None:
+    """Refuse a non-positive step or one beyond the stability limit (with a surrogate fluid
+    block the chamber-pressure bound does not apply)."""
     if not (dt_s > 0 and math.isfinite(dt_s)):
         raise ParameterError(f'dt_s = {dt_s} must be a positive number of seconds')
-    lim, block = stability_limit(p)
+    limits = [x for x in stability_limits(p) if not (surrogate and x[1].startswith('chamber'))]
+    lim, block = min(limits, key=lambda x: x[0])
     if dt_s > lim:
         raise ParameterError(f'dt_s = {dt_s:g} s exceeds the stability limit {lim:.3g} s set '
                              f'by the {block}')
@@ -359,9 +398,11 @@ class Plant:
     """The actuator plant advanced by a held coil-current command, for stepping from outside
     (the ROS plant node).  ``advance`` over several calls is bit-identical to one call."""
 
-    def __init__(self, params: PlantParams | None = None, dt_s: float = 1e-6, seed: int = 0):
+    def __init__(self, params: PlantParams | None = None, dt_s: float = 1e-6, seed: int = 0,
+                 fluid=None):
         self.params = params if params is not None else default_params()
-        check_dt(self.params, dt_s)
+        self.fluid_fn, self.fluid_data, self.use_fluid_fn = _fluid_args(fluid)
+        check_dt(self.params, dt_s, surrogate=self.use_fluid_fn)
         self.dt_s = float(dt_s)
         self.seed = int(seed)
         self.reset()
@@ -375,7 +416,7 @@ class Plant:
 
     def set_params(self, params: PlantParams):
         """Change parameters (wear, degradation) from the next step on."""
-        check_dt(params, self.dt_s)
+        check_dt(params, self.dt_s, surrogate=self.use_fluid_fn)
         if (params.noise_std_a != self.params.noise_std_a
                 or params.noise_sample_time_s != self.params.noise_sample_time_s):
             raise ParameterError('noise_std_a and noise_sample_time_s cannot change during a '
@@ -395,7 +436,8 @@ class Plant:
         status, done, _, _ = _run(self.state, self._ctrl, float(current_command_a),
                                   self.params, 0, _EMPTY_ARGS, _EMPTY, _EMPTY, noise,
                                   self.params.noise_sample_time_s, self.steps, self.dt_s,
-                                  int(n_steps), 0, 1, _EMPTY.reshape(0, N_REC))
+                                  int(n_steps), 0, 1, _EMPTY.reshape(0, N_REC),
+                                  self.fluid_fn, self.fluid_data, self.use_fluid_fn)
         self.steps += done
         if status:
             raise _diverged(status, self.time_s)
@@ -438,7 +480,7 @@ class PositionController:
 
 def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=None,
              dt_s: float = 1e-6, seed: int = 0, controller_period_s: float | None = None,
-             record_dt_s: float | None = 1e-4) -> SimResult:
+             record_dt_s: float | None = 1e-4, fluid=None) -> SimResult:
     """Closed-loop run: ``(params, scenario, duration, dt, seed) -> time histories``.
 
     Parameters
@@ -458,13 +500,18 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     record_dt_s : float, optional
         Recording interval [s], a whole number of controller periods (default 0.1 ms, or the
         controller period if longer; ``None``: every controller tick).
+    fluid : optional
+        A surrogate of the fluid-dynamic block: an object with ``kernel`` (numba function
+        ``kernel(data, xs_m, q_m3_s, overlap_m, clearance_m) -> p12_pa``) and ``data``; the
+        high-fidelity block when ``None``.
     """
     p = params if params is not None else default_params()
     sc = get_scenario(scenario)
     duration = float(sc.duration_s if duration_s is None else duration_s)
     if not (duration > 0 and math.isfinite(duration)):
         raise ParameterError(f'duration_s = {duration_s} must be a positive number of seconds')
-    check_dt(p, dt_s)
+    fluid_fn, fluid_data, use_fluid_fn = _fluid_args(fluid)
+    check_dt(p, dt_s, surrogate=use_fluid_fn)
     period = dt_s if controller_period_s is None else float(controller_period_s)
     steps_per_tick = int(round(period / dt_s))
     if steps_per_tick < 1 or abs(steps_per_tick * dt_s - period) > 1e-9 * period:
@@ -486,7 +533,8 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     n_steps = n_ticks * steps_per_tick
     status, n_done, rows, i_last = _run(state, ctrl, 0.0, p, kind, args, com_t, com_v,
                                         samples, p.noise_sample_time_s, 0, dt_s, n_steps,
-                                        steps_per_tick, rec_every, rec)
+                                        steps_per_tick, rec_every, rec, fluid_fn, fluid_data,
+                                        use_fluid_fn)
     wall = time.perf_counter() - t0
     if status:
         raise _diverged(status, n_done * dt_s)

@@ -1,0 +1,60 @@
+# eha_ros: build, install and test in a local virtual environment (.venv).
+#
+#   make demo    install, then run the simulation demo (eha-simulate)
+#   make test    install, then run the test suite against the installed package
+#   make install create .venv, install requirements.txt and the package (non-editable)
+#   make bench   install, plus requirements-bench.txt, then run the benchmarks
+#   make clean   remove .venv and build outputs
+#
+# The package is always installed with `pip install .` (not editable): the ROS 2 message
+# classes and libraries are generated at build time and exist only in the installed copy.
+
+PYTHON ?= python3
+VENV ?= .venv
+PYTEST_ARGS ?=
+BENCH ?= bench/run.py
+BENCH_ARGS ?=
+
+BIN := $(VENV)/bin
+STAMPS := $(VENV)/.stamps
+PIP := $(BIN)/pip --disable-pip-version-check
+# Everything the installed package is built from (folders too: a deleted file changes them).
+PACKAGE_SOURCES := setup.py setup.cfg pyproject.toml package.xml MANIFEST.in \
+	$(shell find eha_ros msg rosidl_build config resource -not -path '*/__pycache__*' \
+		-not -name '*.pyc' 2>/dev/null)
+
+.PHONY: all install demo test bench clean
+
+all: test
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+
+$(STAMPS)/requirements: requirements.txt setup.py | $(BIN)/python
+	$(PIP) install -r requirements.txt
+	@mkdir -p $(STAMPS) && touch $@
+
+$(STAMPS)/requirements-bench: requirements-bench.txt requirements.txt | $(BIN)/python
+	$(PIP) install -r requirements-bench.txt
+	@mkdir -p $(STAMPS) && touch $@
+
+$(STAMPS)/package: $(STAMPS)/requirements $(PACKAGE_SOURCES)
+	$(PIP) install --no-deps --force-reinstall .
+	@mkdir -p $(STAMPS) && touch $@
+
+install: $(STAMPS)/package
+
+# .venv/bin/pytest (not `python -m pytest`, which would put the source folder on sys.path):
+# the tests import the installed eha_ros, which carries the generated eha_ros.msg.
+test: install
+	$(BIN)/pytest $(PYTEST_ARGS)
+
+demo: install
+	$(BIN)/eha-simulate
+
+bench: install $(STAMPS)/requirements-bench
+	$(BIN)/python $(BENCH) $(BENCH_ARGS)
+
+clean:
+	rm -rf $(VENV) build dist *.egg-info .pytest_cache
+	find . -path ./.git -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +

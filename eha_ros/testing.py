@@ -1,0 +1,335 @@
+"""Helpers for tests that start ROS 2 nodes: isolated environments and message round trips.
+
+Every test that starts ROS 2 nodes runs them in an environment from :func:`ros_environment`:
+its own ``ROS_DOMAIN_ID`` (so simultaneous test runs on one machine never see each other's
+topics) and a temporary ``ROS_LOG_DIR`` (so nothing is written to ``~/.ros/log``).
+
+The module is also a small command-line tool that tests start as separate processes::
+
+    python -m eha_ros.testing pub [--timeout S]   # publish sample_message() of every type
+    python -m eha_ros.testing sub [--timeout S]   # print the first message of every type as JSON
+
+Start these with a working directory outside the source tree (``python -m`` puts the working
+directory first on ``sys.path``, and the source tree has no generated ``eha_ros.msg``).
+"""
+
+import argparse
+from contextlib import contextmanager
+import errno
+import fcntl
+import importlib
+import itertools
+import json
+import math
+import os
+from pathlib import Path
+import shutil
+import struct
+import sys
+import tempfile
+import threading
+import time
+from typing import Dict, Iterator, Optional
+
+#: ROS domain IDs handed out to tests. Up to 101 the DDS ports (7400 + 250 * id + offsets) stay
+#: below Linux's ephemeral port range (32768 and up); 0 is left to whatever runs by default.
+DOMAIN_IDS = range(1, 102)
+
+#: RMW implementation the tests run on.
+RMW_IMPLEMENTATION = 'rmw_fastrtps_cpp'
+
+#: The package's message types, in ``eha_ros.msg``.
+MESSAGE_TYPES = ('ActuatorCommand', 'ServovalveCommand', 'ActuatorState', 'HealthStatus')
+
+#: Topic prefix used by the ``pub``/``sub`` commands; one topic per message type.
+TOPIC_PREFIX = '/eha_ros_test'
+
+_counter = itertools.count()
+
+
+class DomainIdLease:
+    """A ROS domain ID reserved for this process until :meth:`release` (or process exit).
+
+    The reservation is an exclusive ``flock`` on ``<tmp>/eha_ros-ros-domain-ids/<id>.lock``:
+    other processes using this class skip IDs that are held, and the operating system drops
+    the lock if the process dies, so no stale reservation survives a crash.
+    """
+
+    def __init__(self, domain_id: int, handle: int):
+        self.domain_id = domain_id
+        self._handle: Optional[int] = handle
+
+    def release(self) -> None:
+        """Give the domain ID back."""
+        if self._handle is not None:
+            fcntl.flock(self._handle, fcntl.LOCK_UN)
+            os.close(self._handle)
+            self._handle = None
+
+
+def allocate_domain_id(lock_dir: Optional[Path] = None) -> DomainIdLease:
+    """Reserve a ROS domain ID in :data:`DOMAIN_IDS` that no other test process holds.
+
+    The search starts at a point derived from the process ID and a per-process counter, so
+    concurrent processes usually get different IDs at the first try.
+
+    Parameters
+    ----------
+    lock_dir : pathlib.Path, optional
+        Folder of the lock files; default ``<tempdir>/eha_ros-ros-domain-ids``.
+
+    Returns
+    -------
+    DomainIdLease
+
+    Raises
+    ------
+    RuntimeError
+        If every ID in :data:`DOMAIN_IDS` is held.
+    """
+    lock_dir = Path(lock_dir or Path(tempfile.gettempdir()) / 'eha_ros-ros-domain-ids')
+    lock_dir.mkdir(parents=True, exist_ok=True)
+    ids = list(DOMAIN_IDS)
+    start = (os.getpid() * 7919 + next(_counter) * 37) % len(ids)
+    for offset in range(len(ids)):
+        domain_id = ids[(start + offset) % len(ids)]
+        handle = os.open(lock_dir / f'{domain_id}.lock', os.O_CREAT | os.O_RDWR, 0o666)
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(handle)
+            if exc.errno in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                continue
+            raise
+        return DomainIdLease(domain_id, handle)
+    raise RuntimeError(f'all ROS domain IDs {ids[0]}..{ids[-1]} are in use by other tests')
+
+
+@contextmanager
+def ros_environment(base: Optional[Dict[str, str]] = None) -> Iterator[Dict[str, str]]:
+    """Yield an environment for ROS 2 processes isolated from every other test run.
+
+    Parameters
+    ----------
+    base : dict, optional
+        Environment to start from; default a copy of ``os.environ`` (which carries the
+        ``LD_LIBRARY_PATH`` the ROS wheels need).
+
+    Yields
+    ------
+    dict
+        ``base`` plus a reserved ``ROS_DOMAIN_ID``, a fresh temporary ``ROS_LOG_DIR`` (removed
+        afterwards), ``RMW_IMPLEMENTATION=rmw_fastrtps_cpp``, discovery limited to this machine
+        and type/range checks on message field assignment (``ROS_PYTHON_CHECK_FIELDS=1``).
+    """
+    env = dict(os.environ if base is None else base)
+    lease = allocate_domain_id()
+    log_dir = tempfile.mkdtemp(prefix=f'eha_ros-ros-log-{lease.domain_id}-')
+    env.update({
+        'ROS_DOMAIN_ID': str(lease.domain_id),
+        'ROS_LOG_DIR': log_dir,
+        'RMW_IMPLEMENTATION': RMW_IMPLEMENTATION,
+        'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST',
+        'ROS_PYTHON_CHECK_FIELDS': '1',
+    })
+    env.pop('ROS_STATIC_PEERS', None)
+    try:
+        yield env
+    finally:
+        lease.release()
+        shutil.rmtree(log_dir, ignore_errors=True)
+
+
+# --- sample messages ------------------------------------------------------------------------
+
+def message_class(name: str) -> type:
+    """Return the class ``eha_ros.msg.<name>`` (or ``pkg/msg/Name``, ``pkg/Name``)."""
+    if '/' in name:
+        parts = name.split('/')
+        module, name = f'{parts[0]}.msg', parts[-1]
+    else:
+        module = 'eha_ros.msg'
+    return getattr(importlib.import_module(module), name)
+
+
+def _constants(cls: type) -> Dict[str, object]:
+    return {n: getattr(cls, n) for n in dir(cls)
+            if n.isupper() and not n.startswith('_') and not callable(getattr(cls, n))}
+
+
+def _float32(value: float) -> float:
+    return struct.unpack('<f', struct.pack('<f', value))[0]
+
+
+_INT_LIMITS = {
+    'octet': (0, 255), 'char': (0, 255), 'int8': (-2**7, 2**7 - 1), 'uint8': (0, 2**8 - 1),
+    'int16': (-2**15, 2**15 - 1), 'uint16': (0, 2**16 - 1), 'int32': (-2**31, 2**31 - 1),
+    'uint32': (0, 2**32 - 1), 'int64': (-2**63, 2**63 - 1), 'uint64': (0, 2**64 - 1),
+}
+
+
+def _sample_value(cls: type, name: str, type_name: str, index: int):
+    """A distinctive, non-default value for one field (see :func:`sample_message`)."""
+    if type_name.startswith('sequence<') or '[' in type_name:
+        inner = type_name.split('<', 1)[1].rstrip('>').split(',')[0] \
+            if type_name.startswith('sequence<') else type_name.split('[')[0]
+        size = int(type_name.split('[')[1].rstrip(']')) if '[' in type_name else 3
+        return [_sample_value(cls, name, inner, index + k) for k in range(size)]
+    if '/' in type_name:
+        return sample_message(message_class(type_name), seed=index)
+    if type_name in ('double', 'float'):
+        # Irrational mantissas over several decades, alternating sign: every bit matters.
+        value = (-1) ** index * math.pi * (index + 1) * 10.0 ** (index % 7 - 3)
+        return _float32(value) if type_name == 'float' else value
+    if type_name in ('string', 'wstring') or type_name.startswith(('string<', 'wstring<')):
+        return f'{name} #{index}: Δp·Q ✓'
+    if type_name == 'boolean':
+        return True
+    if type_name in _INT_LIMITS:
+        group = {k: v for k, v in _constants(cls).items() if k.startswith(name.upper() + '_')}
+        if group:
+            return max(group.values())  # a named constant, and not the default (0)
+        if name == 'sec':
+            return 1_700_000_000 + index  # keep a valid time
+        if name == 'nanosec':
+            return 999_999_937 - index
+        low, high = _INT_LIMITS[type_name]
+        return high - index if low == 0 else low + index + 1
+    raise NotImplementedError(f'no sample value for {cls.__name__}.{name} of type {type_name}')
+
+
+def sample_message(cls: type, seed: int = 0):
+    """Return an instance of ``cls`` with a distinctive non-default value in every field.
+
+    Floats use irrational mantissas (so a lost bit shows), integers sit at the top of their
+    range (sign and high bits), fields with ``<FIELD>_*`` constants take the largest constant,
+    strings hold non-ASCII UTF-8, nested messages (``header``) are filled the same way. The
+    result is deterministic: two processes build equal messages.
+    """
+    msg = cls()
+    for index, (name, type_name) in enumerate(cls.get_fields_and_field_types().items()):
+        setattr(msg, name, _sample_value(cls, name, type_name, seed + index + 1))
+    return msg
+
+
+def message_to_dict(msg) -> dict:
+    """Convert a message to JSON-compatible data that compares floats bit for bit.
+
+    Floats become ``float.hex()`` strings, nested messages nested dicts, arrays lists.
+    """
+    def convert(value):
+        if hasattr(value, 'get_fields_and_field_types'):
+            return {k: convert(getattr(value, k)) for k in value.get_fields_and_field_types()}
+        if isinstance(value, float):
+            return value.hex()
+        if isinstance(value, (bool, int, str)):
+            return value
+        if hasattr(value, 'tolist'):
+            return convert(value.tolist())
+        if isinstance(value, (list, tuple)):
+            return [convert(v) for v in value]
+        if hasattr(value, 'item'):  # numpy scalar
+            return convert(value.item())
+        raise TypeError(f'cannot convert {type(value).__name__}')
+
+    return {'type': type(msg).__name__, 'fields': convert(msg)}
+
+
+def topic_name(type_name: str) -> str:
+    """Topic the ``pub``/``sub`` commands use for a message type."""
+    snake = ''.join('_' + c.lower() if c.isupper() else c for c in type_name).lstrip('_')
+    return f'{TOPIC_PREFIX}/{snake}'
+
+
+# --- pub / sub commands ---------------------------------------------------------------------
+
+def _qos():
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    return QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def run_publisher(timeout_s: float, period_s: float = 0.05) -> int:
+    """Publish :func:`sample_message` of every type until stdin closes or ``timeout_s``.
+
+    First waits (at most ``timeout_s``) until every publisher has matched a subscriber.
+    Returns the exit status: 0, or 2 when no subscriber matched.
+    """
+    import rclpy
+
+    stop = threading.Event()
+
+    def watch_stdin():
+        try:
+            while sys.stdin.read(1):
+                pass
+        except (OSError, ValueError):
+            pass
+        stop.set()
+
+    threading.Thread(target=watch_stdin, daemon=True).start()
+    rclpy.init()
+    try:
+        node = rclpy.create_node('eha_ros_test_publisher')
+        publishers = [(node.create_publisher(message_class(t), topic_name(t), _qos()),
+                       sample_message(message_class(t))) for t in MESSAGE_TYPES]
+        deadline = time.monotonic() + timeout_s
+        while any(p.get_subscription_count() == 0 for p, _ in publishers):
+            if time.monotonic() > deadline or stop.is_set():
+                print(f'no subscriber matched within {timeout_s} s', file=sys.stderr)
+                return 2
+            rclpy.spin_once(node, timeout_sec=0.02)
+        while not stop.is_set() and time.monotonic() < deadline:
+            for publisher, msg in publishers:
+                publisher.publish(msg)
+            stop.wait(period_s)
+        return 0
+    finally:
+        rclpy.try_shutdown()
+
+
+def run_subscriber(timeout_s: float) -> int:
+    """Print, as one JSON line, the first message received of every type.
+
+    The JSON object maps type name to :func:`message_to_dict`, plus ``eha_ros_file`` (where
+    ``eha_ros`` was imported from). Returns 0, or 1 when some type was not received in time.
+    """
+    import rclpy
+
+    import eha_ros
+
+    received: Dict[str, dict] = {}
+    rclpy.init()
+    try:
+        node = rclpy.create_node('eha_ros_test_subscriber')
+        for type_name in MESSAGE_TYPES:
+            def callback(msg, type_name=type_name):
+                received.setdefault(type_name, message_to_dict(msg))
+            node.create_subscription(message_class(type_name), topic_name(type_name),
+                                     callback, _qos())
+        deadline = time.monotonic() + timeout_s
+        while len(received) < len(MESSAGE_TYPES) and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
+    finally:
+        rclpy.try_shutdown()
+    print(json.dumps({'messages': received, 'eha_ros_file': eha_ros.__file__}), flush=True)
+    missing = sorted(set(MESSAGE_TYPES) - set(received))
+    if missing:
+        print(f'not received within {timeout_s} s: {", ".join(missing)}', file=sys.stderr)
+        return 1
+    return 0
+
+
+def main(argv=None) -> int:
+    """Command line; see the module docstring."""
+    parser = argparse.ArgumentParser(prog='python -m eha_ros.testing')
+    parser.add_argument('command', choices=('pub', 'sub'))
+    parser.add_argument('--timeout', type=float, default=20.0, help='seconds (default 20)')
+    args = parser.parse_args(argv)
+    if args.command == 'pub':
+        return run_publisher(args.timeout)
+    return run_subscriber(args.timeout)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
