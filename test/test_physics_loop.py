@@ -1,5 +1,6 @@
 """Closed loop and steppable plant: tracking, determinism, chunking, divergence, reference."""
 
+import math
 import sys
 from pathlib import Path
 
@@ -69,8 +70,7 @@ def test_plant_advanced_in_ticks_equals_simulate_bit_for_bit():
     sc = get_scenario('step_0p1')
     xs, cur = [], []
     for _ in range(50):
-        t = plant.steps * dt
-        i = ctl.update(sc.value(t), plant.measured_position_m())
+        i = ctl.update(sc.value(plant.time_ns * 1e-9), plant.measured_position_m())
         xs.append(plant.snapshot()['jack_position_m'])
         cur.append(i)
         plant.advance(i, 1000)
@@ -152,7 +152,7 @@ def test_first_stage_stability_limit_is_real():
     lim, _ = stability_limit(P)
     assert lim > 1e-6  # the 1 us default is inside
     with pytest.raises(ParameterError, match='dt_s = .* exceeds the stability limit'):
-        simulate(P, 'step_0p1', dt_s=1.01 * lim)
+        simulate(P, 'step_0p1', dt_s=math.ceil(1.01 * lim * 1e9) * 1e-9)
     with pytest.raises(ParameterError, match='dt_s'):
         Plant(P, dt_s=-1e-6)
 

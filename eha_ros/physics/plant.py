@@ -12,8 +12,9 @@ its current in between, which is what the ROS graph does at its tick rate.
 
 Randomness stays outside the kernels: the torque-motor noise is a sequence of samples drawn
 from ``numpy.random.Generator(seed)`` and held for ``noise_sample_time_s`` each; sample ``k``
-covers ``[k ts, (k+1) ts)``.  Time is ``n * dt`` with an integer step counter ``n``, so a run
-advanced in chunks (the ROS plant) is bit-identical to one advanced at once.
+covers ``[k ts, (k+1) ts)``.  Time is ``n * dt`` with an integer step counter ``n`` and ``dt``
+in whole nanoseconds, so a run advanced in chunks (the ROS plant) is bit-identical to one
+advanced at once.
 """
 
 from __future__ import annotations
@@ -132,7 +133,7 @@ NO_FLUID_DATA = (np.zeros(1),)
 
 
 @njit(cache=True)
-def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, n_steps,
+def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, dt_ns, n_steps,
          steps_per_tick, rec_every, rec, fluid_fn, fluid_data, use_fluid_fn):
     """Advance the plant state ``s`` (in place) by ``n_steps`` steps of ``dt``.
 
@@ -146,7 +147,9 @@ def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, n
     tick is recorded into ``rec`` before the plant moves on.
 
     ``noise[k]`` is the noise sample covering ``[k noise_dt, (k+1) noise_dt)``; ``n0`` is the
-    global index of the first step.  Returns ``(status, steps done, rows recorded, i_cmd)``:
+    global index of the first step.  The time of step ``n`` is ``(n dt_ns) 1e-9`` s, from the
+    integer nanoseconds a ROS clock carries, so the graph evaluates commands at the same
+    times bit for bit.  Returns ``(status, steps done, rows recorded, i_cmd)``:
     status 0, or 1 + the index into ``_WATCHED`` of the first state that diverged.
     """
     cf = flapper_damping(p)
@@ -192,7 +195,7 @@ def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, n
         if steps_per_tick > 0:
             if until_tick == 0:
                 until_tick = steps_per_tick
-                t = n * dt
+                t = (n * dt_ns) * 1e-9
                 r = command_value(kind, args, com_t, com_v, t)
                 i_cmd = _pid(ctrl, r - quantise(surf, q), period, inv_period, p)
                 if until_rec == 0:
@@ -346,11 +349,20 @@ def _fluid_args(fluid):
         raise ParameterError('fluid must provide kernel and data (a FluidSurrogate)') from None
 
 
+def dt_to_ns(dt_s: float) -> int:
+    """The step as a whole number of nanoseconds (ROS time resolution); refuses others."""
+    dt_ns = int(round(dt_s * 1e9))
+    if dt_ns < 1 or abs(dt_ns * 1e-9 - dt_s) > 1e-6 * dt_s:
+        raise ParameterError(f'dt_s = {dt_s:g} s must be a whole number of nanoseconds')
+    return dt_ns
+
+
 def check_dt(p: PlantParams, dt_s: float, surrogate: bool = False) -> None:
     """Refuse a non-positive step or one beyond the stability limit (with a surrogate fluid
     block the chamber-pressure bound does not apply)."""
     if not (dt_s > 0 and math.isfinite(dt_s)):
         raise ParameterError(f'dt_s = {dt_s} must be a positive number of seconds')
+    dt_to_ns(dt_s)
     limits = [x for x in stability_limits(p) if not (surrogate and x[1].startswith('chamber'))]
     lim, block = min(limits, key=lambda x: x[0])
     if dt_s > lim:
@@ -404,6 +416,7 @@ class Plant:
         self.fluid_fn, self.fluid_data, self.use_fluid_fn = _fluid_args(fluid)
         check_dt(self.params, dt_s, surrogate=self.use_fluid_fn)
         self.dt_s = float(dt_s)
+        self.dt_ns = dt_to_ns(dt_s)
         self.seed = int(seed)
         self.reset()
 
@@ -424,8 +437,14 @@ class Plant:
         self.params = params
 
     @property
+    def time_ns(self) -> int:
+        """Simulated time [ns] (exact integer)."""
+        return self.steps * self.dt_ns
+
+    @property
     def time_s(self) -> float:
-        return self.steps * self.dt_s
+        """Simulated time [s], ``time_ns * 1e-9`` as the kernels compute it."""
+        return self.time_ns * 1e-9
 
     def advance(self, current_command_a: float, n_steps: int) -> None:
         """Advance ``n_steps`` plant steps with the coil current command held."""
@@ -436,7 +455,7 @@ class Plant:
         status, done, _, _ = _run(self.state, self._ctrl, float(current_command_a),
                                   self.params, 0, _EMPTY_ARGS, _EMPTY, _EMPTY, noise,
                                   self.params.noise_sample_time_s, self.steps, self.dt_s,
-                                  int(n_steps), 0, 1, _EMPTY.reshape(0, N_REC),
+                                  self.dt_ns, int(n_steps), 0, 1, _EMPTY.reshape(0, N_REC),
                                   self.fluid_fn, self.fluid_data, self.use_fluid_fn)
         self.steps += done
         if status:
@@ -532,14 +551,16 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     t0 = time.perf_counter()
     n_steps = n_ticks * steps_per_tick
     status, n_done, rows, i_last = _run(state, ctrl, 0.0, p, kind, args, com_t, com_v,
-                                        samples, p.noise_sample_time_s, 0, dt_s, n_steps,
+                                        samples, p.noise_sample_time_s, 0, dt_s,
+                                        dt_to_ns(dt_s), n_steps,
                                         steps_per_tick, rec_every, rec, fluid_fn, fluid_data,
                                         use_fluid_fn)
     wall = time.perf_counter() - t0
     if status:
-        raise _diverged(status, n_done * dt_s)
+        raise _diverged(status, (n_done * dt_to_ns(dt_s)) * 1e-9)
     if n_ticks % rec_every == 0:  # close the record with the final state
-        _record(rec, rows, n_done * dt_s, sc.value(n_done * dt_s), i_last, state, p)
+        t_end = (n_done * dt_to_ns(dt_s)) * 1e-9
+        _record(rec, rows, t_end, sc.value(t_end), i_last, state, p)
         rows += 1
     data = {name: rec[:rows, j].copy() for j, name in enumerate(RECORD_FIELDS)}
     return SimResult(data=data, params=p, scenario=sc, dt_s=float(dt_s),
