@@ -38,6 +38,11 @@ PACKAGE = 'eha_ros'
 VERSION = '0.1.0'
 CONSOLE_SCRIPTS = [
     'eha-simulate = eha_ros.tools.simulate:main',
+    'eha-build-db = eha_ros.surrogates.database:main',
+    'command_generator = eha_ros.nodes.command_generator:main',
+    'controller = eha_ros.nodes.controller:main',
+    'servovalve_plant = eha_ros.nodes.servovalve_plant:main',
+    'health_monitor = eha_ros.nodes.health_monitor:main',
 ]
 LAUNCHER_DIR = os.path.join('lib', PACKAGE)
 

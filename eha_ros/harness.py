@@ -1,0 +1,293 @@
+"""Launch-free harness: start the node graph, run a scenario to completion, stop every node
+cleanly and return what was published.
+
+Two ways to start the graph:
+
+* ``processes=True`` - each node is its installed console script in its own process (as
+  ``ros2 run`` would start it), with ``--ros-args -p name:=value`` parameters;
+* ``processes=False`` - all nodes in this process on one executor.
+
+Either way a collector node in this process records ``/eha/state``, ``/eha/command``,
+``/eha/servovalve_command`` and ``/eha/health``.  Example::
+
+    from eha_ros.harness import GraphConfig, run_graph
+    result = run_graph(GraphConfig(scenario='step_0p1', model='hf', mode='lockstep'))
+    result.state['jack_position_m']
+
+In a test, the ``eha_graph`` fixture does the same in an isolated ROS domain.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ['GraphConfig', 'GraphResult', 'GraphError', 'run_graph', 'eha_graph']
+
+STATE_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_s',
+                'spool_position_m', 'flapper_position_m', 'p1_pa', 'p2_pa', 'p12_pa',
+                'load_flow_m3_s', 'coil_current_a', 'torque_motor_force_n', 'sim_time_s')
+
+
+class GraphError(RuntimeError):
+    """The graph did not start, stalled, or a node failed."""
+
+
+@dataclasses.dataclass
+class GraphConfig:
+    """What to run.  ``plant`` holds extra plant parameters (wear), ``health`` starts the
+    health monitor (``health_params`` for its parameters); in lockstep the plant waits for the
+    controller, the harness's collector, the health monitor and ``recorders`` more state
+    subscribers before its first tick, so nobody misses it.  ``events`` are
+    ``(t_s, node_name, {parameter: value})``: set once the plant's state passes ``t_s`` (run-time
+    degradation)."""
+
+    scenario: str = 'step_0p1'
+    model: str = 'hf'
+    mode: str = 'lockstep'
+    duration_s: float | None = None
+    rate_hz: float = 1000.0
+    dt_s: float = 1e-6
+    seed: int = 0
+    plant: dict = dataclasses.field(default_factory=dict)
+    health: bool = False
+    health_params: dict = dataclasses.field(default_factory=dict)
+    params_file: str = ''
+    recorders: int = 0
+    events: list = dataclasses.field(default_factory=list)
+
+    def resolved_duration(self) -> float:
+        if self.duration_s is not None:
+            return float(self.duration_s)
+        from eha_ros.physics import get_scenario
+        return get_scenario(self.scenario).duration_s
+
+    def node_parameters(self) -> dict:
+        """``node -> {parameter: value}``."""
+        sim = self.mode == 'lockstep'
+        common = {'mode': self.mode, 'rate_hz': float(self.rate_hz)}
+        out = {
+            'command_generator': dict(common, scenario=self.scenario, use_sim_time=sim),
+            'controller': dict(common, params_file=self.params_file, use_sim_time=sim),
+            'servovalve_plant': dict(common, model=self.model, dt_s=float(self.dt_s),
+                                     seed=int(self.seed), params_file=self.params_file,
+                                     duration_s=self.resolved_duration(),
+                                     start_subscribers=2 + int(self.health) + self.recorders,
+                                     **self.plant),
+        }
+        if self.health:
+            out['health_monitor'] = dict(params_file=self.params_file, use_sim_time=sim,
+                                         **self.health_params)
+        return out
+
+
+@dataclasses.dataclass
+class GraphResult:
+    """Arrays of what the collector received, in arrival order; ``health`` is a list of
+    HealthStatus messages."""
+
+    state: dict
+    command: dict
+    servovalve: dict
+    health: list
+    wall_s: float
+    config: GraphConfig
+
+    @property
+    def sim_s(self) -> float:
+        t = self.state['sim_time_s']
+        return float(t[-1]) if t.size else 0.0
+
+
+def _ros_arg(value) -> str:
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, str):
+        return value if value else "''"
+    return repr(value)
+
+
+class _Collector:
+    def __init__(self, context, qos):
+        from rclpy.node import Node
+
+        from eha_ros.msg import ActuatorCommand, ActuatorState, HealthStatus, ServovalveCommand
+        from eha_ros.nodes.common import (TOPIC_COMMAND, TOPIC_HEALTH, TOPIC_SERVOVALVE,
+                                          TOPIC_STATE)
+        self.node = Node('eha_harness_collector', context=context)
+        self.states, self.commands, self.currents, self.health = [], [], [], []
+        self.node.create_subscription(ActuatorState, TOPIC_STATE, self.states.append, qos)
+        self.node.create_subscription(ActuatorCommand, TOPIC_COMMAND, self.commands.append, qos)
+        self.node.create_subscription(ServovalveCommand, TOPIC_SERVOVALVE, self.currents.append,
+                                      qos)
+        self.node.create_subscription(HealthStatus, TOPIC_HEALTH, self.health.append, qos)
+
+    def set_parameters(self, executor, target: str, values: dict, timeout_s: float = 10.0):
+        """Set parameters of node ``target`` through its parameter service."""
+        from rclpy.parameter import Parameter
+        from rclpy.parameter_client import AsyncParameterClient
+        client = AsyncParameterClient(self.node, target)
+        if not client.wait_for_services(timeout_sec=timeout_s):
+            raise GraphError(f'node {target} offers no parameter service')
+        future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
+        end = time.monotonic() + timeout_s
+        while not future.done() and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.01)
+        if not future.done():
+            raise GraphError(f'setting {sorted(values)} on {target} timed out')
+        for result in future.result().results:
+            if not result.successful:
+                raise GraphError(f'{target} refused {sorted(values)}: {result.reason}')
+
+    def result(self, config, wall):
+        def stamps(msgs):
+            return np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+                             for m in msgs], dtype=np.int64)
+        state = {f: np.array([getattr(m, f) for m in self.states]) for f in STATE_FIELDS}
+        state['stamp_ns'] = stamps(self.states)
+        state['tick'] = np.array([m.tick for m in self.states], dtype=np.int64)
+        state['status'] = np.array([m.status for m in self.states], dtype=np.int64)
+        command = {'stamp_ns': stamps(self.commands),
+                   'position_setpoint_m': np.array([m.position_setpoint_m
+                                                    for m in self.commands])}
+        servo = {'stamp_ns': stamps(self.currents),
+                 'current_command_a': np.array([m.current_command_a for m in self.currents])}
+        return GraphResult(state, command, servo, list(self.health), wall, config)
+
+
+def run_graph(config: GraphConfig | None = None, processes: bool = True, env: dict | None = None,
+              timeout_s: float = 300.0, log_dir: str | None = None) -> GraphResult:
+    """Run ``config`` until the plant has simulated its duration; see the module docstring.
+
+    ``env`` (e.g. from :func:`eha_ros.testing.ros_environment`) sets ``ROS_DOMAIN_ID`` and
+    ``ROS_LOG_DIR``; default: the current environment.  Raises :class:`GraphError` when a node
+    exits early or the run stalls for ``timeout_s``.
+    """
+    import rclpy
+
+    from eha_ros.nodes.common import QOS, make_executor
+
+    config = config or GraphConfig()
+    env = dict(os.environ if env is None else env)
+    duration_ns = round(config.resolved_duration() * 1e9)
+    params = config.node_parameters()
+    context = rclpy.Context()
+    domain = int(env.get('ROS_DOMAIN_ID', '0'))
+    saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_LOG_DIR')}
+    os.environ.update({k: env[k] for k in saved if k in env})
+    rclpy.init(context=context, domain_id=domain)
+    executor = make_executor(context)
+    collector = _Collector(context, QOS)
+    executor.add_node(collector.node)
+    procs, nodes = {}, []
+    log_dir = Path(log_dir or tempfile.mkdtemp(prefix='eha_graph_'))
+    t0 = time.monotonic()
+    try:
+        if processes:
+            bindir = Path(sys.executable).parent
+            for name, p in params.items():
+                cmd = [str(bindir / name), '--ros-args']
+                for k, v in p.items():
+                    cmd += ['-p', f'{k}:={_ros_arg(v)}']
+                out = open(log_dir / f'{name}.log', 'wb')
+                procs[name] = (subprocess.Popen(cmd, env=env, stdout=out,
+                                                stderr=subprocess.STDOUT, cwd=log_dir), out)
+        else:
+            from rclpy.parameter import Parameter
+
+            from eha_ros.nodes.command_generator import CommandGenerator
+            from eha_ros.nodes.controller import Controller
+            from eha_ros.nodes.health_monitor import HealthMonitor
+            from eha_ros.nodes.servovalve_plant import ServovalvePlant
+            classes = {'command_generator': CommandGenerator, 'controller': Controller,
+                       'servovalve_plant': ServovalvePlant, 'health_monitor': HealthMonitor}
+            for name, p in params.items():
+                overrides = [Parameter(k, value=v) for k, v in p.items()]
+                node = classes[name](context=context, parameter_overrides=overrides)
+                nodes.append(node)
+                executor.add_node(node)
+        last_progress, last_count = time.monotonic(), 0
+        events = sorted(config.events, key=lambda e: e[0])
+        while True:
+            executor.spin_once(timeout_sec=0.05)
+            states = collector.states
+            while events and states and states[-1].sim_time_s >= events[0][0]:
+                _, target, values = events.pop(0)
+                collector.set_parameters(executor, target, values)
+            if states and (states[-1].header.stamp.sec * 1_000_000_000
+                           + states[-1].header.stamp.nanosec) >= duration_ns:
+                break
+            if states and states[-1].status == 3:
+                break  # diverged: the plant has stopped
+            for name, (proc, _) in procs.items():
+                if proc.poll() is not None:
+                    raise GraphError(f'node {name} exited with status {proc.returncode} '
+                                     f'before the run completed (log: {log_dir / name}.log): '
+                                     + _tail(log_dir / f'{name}.log'))
+            if len(states) != last_count:
+                last_count, last_progress = len(states), time.monotonic()
+            elif time.monotonic() - last_progress > timeout_s:
+                raise GraphError(f'no plant state for {timeout_s:g} s (after {last_count} '
+                                 f'states): the graph stalled (logs in {log_dir})')
+        # let the last tick's messages (health, commands) arrive
+        end = time.monotonic() + 0.2
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.02)
+        wall = time.monotonic() - t0
+        return collector.result(config, wall)
+    finally:
+        for name, (proc, out) in procs.items():
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+        for name, (proc, out) in procs.items():
+            try:
+                proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            out.close()
+        for node in nodes:
+            executor.remove_node(node)
+            close = getattr(node, 'close', None)
+            if close:
+                close()
+            node.destroy_node()
+        collector.node.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown(context=context)
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _tail(path: Path, n: int = 3) -> str:
+    try:
+        lines = path.read_text(errors='replace').strip().splitlines()
+    except OSError:
+        return ''
+    return ' | '.join(lines[-n:])
+
+
+try:
+    import pytest
+
+    @pytest.fixture
+    def eha_graph(ros_env):
+        """``eha_graph(processes=True, **GraphConfig fields) -> GraphResult`` in this test's
+        own ROS domain."""
+        def run(processes: bool = True, timeout_s: float = 120.0, **fields):
+            return run_graph(GraphConfig(**fields), processes=processes, env=ros_env,
+                             timeout_s=timeout_s, log_dir=ros_env.get('ROS_LOG_DIR'))
+        return run
+except ImportError:  # pytest is a test dependency only
+    pass

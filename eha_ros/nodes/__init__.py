@@ -1,0 +1,1 @@
+"""The ROS 2 nodes of the actuator graph (thin: numerics live in physics and surrogates)."""

@@ -1,0 +1,116 @@
+"""``command_generator``: publishes the jack position command (``ActuatorCommand``).
+
+Realtime mode: a wall-clock timer at ``rate_hz``, time counted from the node's start.
+Lockstep mode: one command per ``/clock`` tick published by the plant, stamped with that tick
+and evaluated at exactly its time.
+
+Parameters: ``scenario`` (a name from ``config/scenarios.yaml``; empty: the waveform below),
+``waveform``, ``amplitude_m``, ``frequency_rad_s``, ``start_s``, ``ramp_time_s``, ``f0_hz``,
+``f1_hz``, ``sweep_time_s``, ``rate_hz``, ``mode``.
+"""
+
+from __future__ import annotations
+
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+
+from eha_ros.msg import ActuatorCommand
+from eha_ros.physics import ParameterError, Scenario, load_scenarios
+from eha_ros.physics.commands import WAVEFORMS
+
+from .common import (MODES, QOS, TOPIC_CLOCK, TOPIC_COMMAND, declare, ns_to_stamp, run_node,
+                     stamp_to_ns, validator)
+
+_WAVE_PARAMS = ('amplitude_m', 'frequency_rad_s', 'start_s', 'ramp_time_s', 'f0_hz', 'f1_hz',
+                'sweep_time_s')
+
+
+class CommandGenerator(Node):
+    """Publishes ``ActuatorCommand`` at the fixed rate or on every lockstep tick."""
+
+    def __init__(self, **kwargs):
+        super().__init__('command_generator', **kwargs)
+        self._scenarios = load_scenarios()
+        declare(self, 'scenario', 'step_0p1', 'named scenario of config/scenarios.yaml; empty: '
+                'use the waveform parameters', choices=sorted(self._scenarios) + [''])
+        declare(self, 'waveform', 'step', 'waveform when scenario is empty', choices=WAVEFORMS)
+        for name, text in (('amplitude_m', 'amplitude [m]'),
+                           ('frequency_rad_s', 'sine angular frequency [rad/s]'),
+                           ('start_s', 'start time [s]'), ('ramp_time_s', 'ramp time [s]'),
+                           ('f0_hz', 'chirp start frequency [Hz]'),
+                           ('f1_hz', 'chirp end frequency [Hz]'),
+                           ('sweep_time_s', 'chirp sweep time [s]')):
+            declare(self, name, 0.0, text)
+        declare(self, 'rate_hz', 1000.0, 'publication rate in realtime mode [Hz]', 1.0, 1e5)
+        declare(self, 'mode', 'realtime', 'timing mode', choices=MODES)
+        self.scenario = self._build(self._values())
+        self._check_mode(self.get_parameter('mode').value)
+        self.add_on_set_parameters_callback(validator(self._on_set))
+        self.pub = self.create_publisher(ActuatorCommand, TOPIC_COMMAND, QOS)
+        self.mode = self.get_parameter('mode').value
+        self.published = 0
+        if self.mode == 'lockstep':
+            self.create_subscription(Clock, TOPIC_CLOCK, self._on_clock, QOS)
+        else:
+            self._t0_ns = self.get_clock().now().nanoseconds
+            self.create_timer(1.0 / self.get_parameter('rate_hz').value, self._on_timer)
+
+    def _values(self, changes=None) -> dict:
+        names = ('scenario', 'waveform') + _WAVE_PARAMS
+        d = {n: self.get_parameter(n).value for n in names}
+        d.update(changes or {})
+        return d
+
+    def _build(self, d) -> Scenario:
+        if d['scenario']:
+            if d['scenario'] not in self._scenarios:
+                raise ParameterError(f'unknown scenario {d["scenario"]!r} (known: '
+                                     f'{", ".join(sorted(self._scenarios))})')
+            return self._scenarios[d['scenario']]
+        return Scenario(name='custom', waveform=d['waveform'], duration_s=1e9,
+                        **{k: float(d[k]) for k in _WAVE_PARAMS})
+
+    @staticmethod
+    def _check_mode(mode):
+        if mode not in MODES:
+            raise ParameterError(f'mode {mode!r} must be one of {", ".join(MODES)}')
+
+    def _on_set(self, changes):
+        if 'mode' in changes:
+            self._check_mode(changes['mode'])
+            raise ParameterError('mode cannot change while running')
+        if 'rate_hz' in changes and changes['rate_hz'] != self.get_parameter('rate_hz').value:
+            raise ParameterError('rate_hz cannot change while running')
+        if set(changes) & (set(_WAVE_PARAMS) | {'scenario', 'waveform'}):
+            self.scenario = self._build(self._values(changes))
+
+    def _publish(self, t_ns: int, stamp=None):
+        msg = ActuatorCommand()
+        if stamp is not None:
+            msg.header.stamp = stamp
+        else:
+            ns_to_stamp(msg.header.stamp, t_ns)
+        msg.header.frame_id = 'jack'
+        msg.position_setpoint_m = float(self.scenario.value(t_ns * 1e-9))
+        self.pub.publish(msg)
+        self.published += 1
+
+    def _on_clock(self, msg: Clock):
+        self._publish(stamp_to_ns(msg.clock), stamp=msg.clock)
+
+    def _on_timer(self):
+        now = self.get_clock().now()
+        msg = ActuatorCommand()
+        msg.header.stamp = now.to_msg()
+        msg.header.frame_id = 'jack'
+        msg.position_setpoint_m = float(self.scenario.value((now.nanoseconds - self._t0_ns)
+                                                            * 1e-9))
+        self.pub.publish(msg)
+        self.published += 1
+
+
+def main(args=None) -> int:
+    return run_node(CommandGenerator, args)
+
+
+CommandGenerator.node_name = 'command_generator'

@@ -1,0 +1,130 @@
+"""``health_monitor``: estimates the servovalve's wear (radial clearance, overlap) from the
+plant's ``ActuatorState`` and publishes ``HealthStatus`` and ``/diagnostics``.
+
+Every ``update_period_s`` of state time it fits the valve model to the (XS, Q, P12) samples of
+the last ``window_s`` (:class:`eha_ros.surrogates.health.InServiceEstimator`, method
+``steady-fit``, or ``surrogate-fit`` with ``model`` naming a shipped 4-input surrogate) and
+grades the estimate with the thresholds of ``config/health.yaml``.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.node import Node
+
+from eha_ros.msg import ActuatorState, HealthStatus
+from eha_ros.physics import ParameterError, load_params
+from eha_ros.surrogates.health import HealthThresholds, InServiceEstimator, classify
+
+from .common import (QOS, TOPIC_DIAGNOSTICS, TOPIC_HEALTH, TOPIC_STATE, declare, run_node,
+                     stamp_to_ns, validator)
+
+_LEVEL_BYTES = {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, 2: DiagnosticStatus.ERROR}
+
+
+class HealthMonitor(Node):
+    """Wear estimation node."""
+
+    def __init__(self, **kwargs):
+        super().__init__('health_monitor', **kwargs)
+        path = declare(self, 'params_file', '', 'physical parameter YAML (empty: installed)')
+        limits = declare(self, 'thresholds_file', '', 'health threshold YAML (empty: the '
+                         'installed config/health.yaml)')
+        self.model_name = declare(self, 'model', 'steady', 'valve model fitted: steady (the '
+                                  'steady-state valve) or a shipped 4-input surrogate (nn, lut)',
+                                  choices=('steady', 'nn', 'lut'))
+        self.window_s = declare(self, 'window_s', 1.0, 'samples of the last window_s [s] are '
+                                'fitted', 0.01, 3600.0)
+        self.update_s = declare(self, 'update_period_s', 0.5, 'state time between estimates '
+                                '[s]', 0.001, 3600.0)
+        self.settle_s = declare(self, 'settle_s', 0.05, 'state time ignored at start [s]', 0.0,
+                                3600.0)
+        self.params = load_params(path or None)
+        self.limits = HealthThresholds.load(limits or None)
+        model = None
+        if self.model_name != 'steady':
+            from eha_ros.surrogates.base import load_surrogate
+            model = load_surrogate(self.model_name, self.params).p12
+        self.estimator = InServiceEstimator(self.params, model=model)
+        self.add_on_set_parameters_callback(validator(self._on_set))
+        self.health_pub = self.create_publisher(HealthStatus, TOPIC_HEALTH, QOS)
+        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, QOS)
+        self.create_subscription(ActuatorState, TOPIC_STATE, self._on_state, QOS)
+        self.samples = deque()
+        self.next_ns = None
+        self.last = None
+        self.published = 0
+
+    def _on_set(self, changes):
+        if {'params_file', 'thresholds_file', 'model'} & set(changes):
+            raise ParameterError('params_file, thresholds_file and model cannot change while '
+                                 'running')
+        if 'window_s' in changes:
+            self.window_s = float(changes['window_s'])
+        if 'update_period_s' in changes:
+            self.update_s = float(changes['update_period_s'])
+
+    def _on_state(self, msg: ActuatorState):
+        t_ns = stamp_to_ns(msg.header.stamp)
+        if msg.status == ActuatorState.STATUS_DIVERGED or msg.sim_time_s < self.settle_s:
+            return
+        self.samples.append((t_ns, msg.spool_position_m, msg.load_flow_m3_s, msg.p12_pa))
+        while self.samples and self.samples[0][0] < t_ns - self.window_s * 1e9:
+            self.samples.popleft()
+        if self.next_ns is None:
+            self.next_ns = t_ns + int(self.update_s * 1e9)
+        if t_ns >= self.next_ns:
+            self.next_ns = t_ns + int(self.update_s * 1e9)
+            self.publish_estimate(msg.header.stamp)
+
+    def publish_estimate(self, stamp):
+        """Estimate from the buffered samples and publish HealthStatus and /diagnostics."""
+        _, xs, q, p12 = zip(*self.samples) if self.samples else ((), (), (), ())
+        out = HealthStatus()
+        out.header.stamp = stamp
+        out.header.frame_id = 'servovalve'
+        try:
+            est = self.estimator.estimate(xs, q, p12)
+        except ParameterError as exc:
+            out.level = HealthStatus.LEVEL_ERROR
+            out.method = self.estimator.method
+            out.message = f'no estimate: {exc}'
+        else:
+            level, text = classify(est, self.limits)
+            out.radial_clearance_m = est.radial_clearance_m
+            out.radial_clearance_std_m = est.radial_clearance_std_m
+            out.overlap_m = est.overlap_m
+            out.overlap_std_m = est.overlap_std_m
+            out.pressure_residual_pa = est.pressure_residual_pa
+            out.samples_used = est.samples_used
+            out.level = level
+            out.method = est.method
+            out.message = text
+        self.last = out
+        self.health_pub.publish(out)
+        arr = DiagnosticArray()
+        arr.header.stamp = stamp
+        st = DiagnosticStatus()
+        st.level = _LEVEL_BYTES[int(out.level)]
+        st.name = 'eha_ros/servovalve'
+        st.message = out.message
+        st.hardware_id = 'servovalve'
+        st.values = [KeyValue(key=k, value=f'{v:.6g}') for k, v in (
+            ('radial_clearance_m', out.radial_clearance_m),
+            ('radial_clearance_std_m', out.radial_clearance_std_m),
+            ('overlap_m', out.overlap_m), ('overlap_std_m', out.overlap_std_m),
+            ('pressure_residual_pa', out.pressure_residual_pa))]
+        st.values.append(KeyValue(key='method', value=out.method))
+        arr.status = [st]
+        self.diag_pub.publish(arr)
+        self.published += 1
+        self.get_logger().info(f'[{("OK", "WARN", "ERROR")[out.level]}] {out.message}')
+
+
+def main(args=None) -> int:
+    return run_node(HealthMonitor, args)
+
+
+HealthMonitor.node_name = 'health_monitor'

@@ -1,0 +1,219 @@
+"""``servovalve_plant``: the actuator (servovalve + jack) integrated between ticks; publishes
+``ActuatorState`` every tick.
+
+``model`` selects the fluid-dynamic block: ``hf`` (the high-fidelity chambers and metering
+edges) or a surrogate shipped in ``eha_ros/surrogates/models`` (``lut``, ``ga``, ``nn``,
+``nn2``).  Between ticks the plant takes ``1/rate_hz / dt_s`` steps of ``dt_s`` (1 us) with the
+last coil-current command held.
+
+Realtime mode: a wall-clock timer at ``rate_hz``.  Lockstep mode: the plant is the time source:
+it publishes ``/clock`` and the state of tick k, and advances to tick k+1 only when the
+``ServovalveCommand`` stamped with tick k arrives; if none comes within ``resend_s`` of wall
+time it publishes tick k again.
+
+Wear and degradation (overlap, clearance, eccentricity, Khsv, KGM, K_intas, backlash, friction,
+hysteresis, offset, leakage) are parameters that can change while running; a non-physical value
+is refused with the reason.
+"""
+
+from __future__ import annotations
+
+from rclpy.clock import Clock as RosClock
+from rclpy.clock import ClockType
+from rclpy.node import Node
+from rosgraph_msgs.msg import Clock
+
+from eha_ros.msg import ActuatorState, ServovalveCommand
+from eha_ros.physics import ParameterError, Plant, SimulationDiverged, load_params
+from eha_ros.physics.params import replace
+from eha_ros.physics.plant import S_P1, S_P2, S_XJ
+
+from .common import (MODES, QOS, TOPIC_CLOCK, TOPIC_SERVOVALVE, TOPIC_STATE, declare,
+                     declare_physics, ns_to_stamp, run_node, stamp_to_ns, validator)
+
+MODELS = ('hf', 'lut', 'ga', 'nn', 'nn2')
+
+#: Parameters that may change during a run (progressive degradation).
+WEAR = ('overlap_supply_m', 'overlap_return_m', 'radial_clearance_m', 'eccentricity_ratio',
+        'valve_degradation', 'demagnetisation', 'filter_clogging', 'feedback_backlash_m',
+        'surface_backlash_m', 'jack_static_friction_n', 'jack_dynamic_friction_n',
+        'spool_static_friction_n', 'spool_dynamic_friction_n', 'hysteresis_a', 'offset_a',
+        'leakage_coeff_m3_s_pa', 'external_force_n')
+
+
+def load_fluid(model: str, params):
+    """The fluid block for ``model``: None for hf, else the shipped surrogate."""
+    if model == 'hf':
+        return None
+    if model not in MODELS:
+        raise ParameterError(f'model {model!r} must be one of {", ".join(MODELS)}')
+    from eha_ros.surrogates.base import load_surrogate
+    return load_surrogate(model, params)
+
+
+class ServovalvePlant(Node):
+    """The plant node."""
+
+    def __init__(self, **kwargs):
+        super().__init__('servovalve_plant', **kwargs)
+        path = declare(self, 'params_file', '', 'physical parameter YAML (empty: the installed '
+                       'config/eha_params.yaml)')
+        base = load_params(path or None)
+        declare_physics(self, base, WEAR)
+        self.model = declare(self, 'model', 'hf', 'fluid-dynamic block', choices=MODELS)
+        dt_s = declare(self, 'dt_s', 1e-6, 'plant integration step [s]', 1e-9, 1e-3)
+        rate = declare(self, 'rate_hz', 1000.0, 'tick rate [Hz]', 1.0, 1e5)
+        self.mode = declare(self, 'mode', 'realtime', 'timing mode', choices=MODES)
+        seed = declare(self, 'seed', 0, 'seed of the torque-motor noise', 0, 2 ** 31 - 1)
+        self.duration_s = declare(self, 'duration_s', 0.0, 'stop advancing after this simulated '
+                                  'time [s] (0: never)', 0.0, 1e9)
+        self.resend_s = declare(self, 'resend_s', 2.0, 'lockstep: re-publish the tick after '
+                                'this long without its command [s]', 0.01, 60.0)
+        self.start_subscribers = declare(self, 'start_subscribers', 1, 'lockstep: state '
+                                         'subscribers to wait for before the first tick (the '
+                                         'controller, plus recorders)', 1, 100)
+        if self.mode not in MODES:
+            raise ParameterError(f'mode {self.mode!r} must be one of {", ".join(MODES)}')
+        params = replace(base, **{n: self.get_parameter(n).value for n in WEAR})
+        self.fluid = load_fluid(self.model, params)
+        self.plant = Plant(params, dt_s=dt_s, seed=seed, fluid=self.fluid)
+        period_ns = round(1e9 / rate)
+        if period_ns % self.plant.dt_ns:
+            raise ParameterError(f'the tick period {period_ns} ns must be a whole number of '
+                                 f'dt_s = {dt_s:g} s')
+        self.period_ns = period_ns
+        self.steps_per_tick = period_ns // self.plant.dt_ns
+        self.add_on_set_parameters_callback(validator(self._on_set))
+        self.state_pub = self.create_publisher(ActuatorState, TOPIC_STATE, QOS)
+        self.create_subscription(ServovalveCommand, TOPIC_SERVOVALVE, self._on_command, QOS)
+        self.current_a = 0.0
+        self.done = False
+        self.diverged = False
+        self.ticks = 0
+        steady = RosClock(clock_type=ClockType.STEADY_TIME)
+        if self.mode == 'lockstep':
+            self.clock_pub = self.create_publisher(Clock, TOPIC_CLOCK, QOS)
+            self._started = False
+            self._last_pub_ns = 0
+            self._watchdog = self.create_timer(0.01, self._on_watchdog, clock=steady)
+        else:
+            self.create_timer(period_ns * 1e-9, self._on_timer, clock=steady)
+        self.get_logger().info(f'model {self.model}, dt {dt_s:g} s, {self.steps_per_tick} '
+                               f'steps per tick, {self.mode}')
+
+    # parameters --------------------------------------------------------------------------
+    def _on_set(self, changes):
+        frozen = {'model', 'dt_s', 'rate_hz', 'mode', 'seed', 'params_file'} & set(changes)
+        if frozen:
+            raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
+        wear = {k: v for k, v in changes.items() if k in WEAR}
+        if wear:
+            params = replace(self.plant.params, **wear)  # raises with the reason if bad
+            if self.fluid is not None:
+                self.fluid.check_params(params)
+            self.plant.set_params(params)
+            self.get_logger().info('parameters changed: ' + ', '.join(
+                f'{k}={v:g}' for k, v in wear.items()))
+        if 'duration_s' in changes:
+            self.duration_s = float(changes['duration_s'])
+        if 'resend_s' in changes:
+            self.resend_s = float(changes['resend_s'])
+
+    # stepping ----------------------------------------------------------------------------
+    def _advance(self):
+        if self.done or self.diverged:
+            return False
+        try:
+            self.plant.advance(self.current_a, self.steps_per_tick)
+        except SimulationDiverged as exc:
+            self.diverged = True
+            self.get_logger().error(str(exc))
+            return True
+        self.ticks += 1
+        if self.duration_s and self.plant.time_ns >= round(self.duration_s * 1e9):
+            self.done = True
+            self.get_logger().info(f'scenario complete at t = {self.plant.time_s:.6g} s')
+        return True
+
+    def _state_msg(self) -> ActuatorState:
+        s = self.plant.snapshot()
+        p = self.plant.params
+        msg = ActuatorState()
+        ns_to_stamp(msg.header.stamp, self.plant.time_ns)
+        msg.header.frame_id = 'jack'
+        msg.jack_position_m = s['jack_position_m']
+        msg.jack_position_measured_m = s['jack_position_measured_m']
+        msg.jack_velocity_m_s = s['jack_velocity_m_s']
+        msg.spool_position_m = s['spool_position_m']
+        msg.flapper_position_m = s['flapper_position_m']
+        msg.p1_pa = s['p1_pa']
+        msg.p2_pa = s['p2_pa']
+        msg.p12_pa = s['p12_pa']
+        msg.load_flow_m3_s = s['load_flow_m3_s']
+        msg.coil_current_a = s['coil_current_a']
+        msg.torque_motor_force_n = s['torque_motor_force_n']
+        msg.sim_time_s = self.plant.time_s
+        msg.tick = self.plant.steps
+        msg.model = self.model
+        st = self.plant.state
+        if self.diverged:
+            msg.status = ActuatorState.STATUS_DIVERGED
+        elif abs(st[S_XJ]) >= p.jack_stroke_m:
+            msg.status = ActuatorState.STATUS_END_STOP
+        elif min(st[S_P1], st[S_P2]) <= p.vapour_pressure_pa:
+            msg.status = ActuatorState.STATUS_CAVITATION
+        else:
+            msg.status = ActuatorState.STATUS_OK
+        return msg
+
+    def _publish_tick(self):
+        if self.mode == 'lockstep':
+            clock = Clock()
+            ns_to_stamp(clock.clock, self.plant.time_ns)
+            self.clock_pub.publish(clock)
+        self.state_pub.publish(self._state_msg())
+        self._last_pub_ns = RosClock(clock_type=ClockType.STEADY_TIME).now().nanoseconds
+
+    # realtime ----------------------------------------------------------------------------
+    def _on_timer(self):
+        if self._advance():
+            self.state_pub.publish(self._state_msg())
+
+    def _on_command(self, msg: ServovalveCommand):
+        if self.mode == 'realtime':
+            self.current_a = msg.current_command_a
+            return
+        if stamp_to_ns(msg.header.stamp) != self.plant.time_ns:
+            return  # an answer to a tick already advanced (a re-sent tick)
+        self.current_a = msg.current_command_a
+        if self._advance():
+            self._publish_tick()
+
+    # lockstep ----------------------------------------------------------------------------
+    def _ready(self) -> bool:
+        """Everyone the loop needs has matched: a state reader (controller) answering with
+        servovalve commands and a clock reader (command generator)."""
+        return (self.state_pub.get_subscription_count() >= self.start_subscribers
+                and self.clock_pub.get_subscription_count() >= 1
+                and self.count_publishers(TOPIC_SERVOVALVE) >= 1)
+
+    def _on_watchdog(self):
+        now = RosClock(clock_type=ClockType.STEADY_TIME).now().nanoseconds
+        if not self._started:
+            if self._ready():
+                self._started = True
+                self._publish_tick()
+            return
+        if self.done or self.diverged:
+            return
+        if now - self._last_pub_ns > self.resend_s * 1e9:
+            self.get_logger().warning(f'no command for tick t = {self.plant.time_s:.6g} s: '
+                                   're-publishing it')
+            self._publish_tick()
+
+
+def main(args=None) -> int:
+    return run_node(ServovalvePlant, args)
+
+
+ServovalvePlant.node_name = 'servovalve_plant'

@@ -1,0 +1,198 @@
+"""Servovalve wear (radial clearance, overlap) from in-service samples, and health levels.
+
+In service the jack moves as commanded and the plant reports spool position XS, load flow Q
+and load pressure P12.  For a worn valve the relation P12(XS, Q) changes - the overlap shifts
+and the clearance flattens the pressure gain near null - so the wear is the (overlap,
+clearance) whose valve model best explains the samples::
+
+    (overlap, clearance) = argmin  sum_k (P12_model(XS_k, Q_k; overlap, clearance) - P12_k)^2
+
+The model is the valve's steady state (:func:`eha_ros.physics.maps.steady_map`, method
+``steady-fit``) or any 4-input surrogate (method ``surrogate-fit``).  In service the valve is
+quasi-static at the controller's pace, which the steady state describes; the reference's maps
+(a 10 ms transient from zero pressure) do not settle near null and bias the estimate.
+
+Search: a coarse grid over the swept wear ranges picks the basin (clearance and overlap trade
+off along a narrow valley), Levenberg-Marquardt with a finite-difference Jacobian finds the
+minimum.  Uncertainty: ``sigma^2 (J^T J)^-1`` with ``sigma^2`` from the final residual.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import numpy as np
+
+from eha_ros.physics import PlantParams, default_params
+from eha_ros.physics.maps import WEAR_RANGES, steady_map
+from eha_ros.physics.params import ParameterError, read_yaml
+
+__all__ = ['HealthEstimate', 'InServiceEstimator', 'HealthThresholds', 'classify', 'OK', 'WARN',
+           'ERROR']
+
+OK, WARN, ERROR = 0, 1, 2
+
+
+@dataclasses.dataclass
+class HealthEstimate:
+    radial_clearance_m: float
+    radial_clearance_std_m: float
+    overlap_m: float
+    overlap_std_m: float
+    pressure_residual_pa: float
+    samples_used: int
+    method: str
+
+
+class InServiceEstimator:
+    """Least-squares wear estimate from (XS, Q, P12) samples.
+
+    Parameters
+    ----------
+    params : PlantParams
+        Physics of the valve (the wear values in it are ignored).
+    model : callable, optional
+        ``model(xs, q, overlap, clearance) -> p12`` broadcasting over arrays (a surrogate's
+        ``p12``); default the steady-state valve solution.
+    coarse : int
+        Points per axis of the coarse grid that picks the starting point.
+    iterations : int
+        Most Levenberg-Marquardt iterations from there.
+    max_samples : int
+        Samples used (evenly decimated from the most recent).
+    """
+
+    def __init__(self, params: PlantParams | None = None, model: Callable | None = None,
+                 coarse: int = 7, iterations: int = 30, max_samples: int = 200):
+        self.params = params if params is not None else default_params()
+        self.model = model
+        self.method = 'steady-fit' if model is None else 'surrogate-fit'
+        self.coarse = coarse
+        self.iterations = iterations
+        self.max_samples = max_samples
+
+    def _predict(self, xs, q, lap, clr):
+        if self.model is None:
+            return steady_map(xs, q, lap, clr, params=self.params)['p12_pa']
+        return self.model(xs, q, lap, clr)
+
+    def _residuals(self, xs, q, p12, laps, clrs):
+        lap_g, clr_g = np.meshgrid(laps, clrs, indexing='ij')
+        pred = self._predict(xs[None, None, :], q[None, None, :], lap_g[..., None],
+                             clr_g[..., None])
+        return np.mean((pred - p12[None, None, :]) ** 2, axis=2), lap_g, clr_g
+
+    def estimate(self, xs_m, q_m3_s, p12_pa) -> HealthEstimate:
+        xs, q, p12 = (np.asarray(a, dtype=float).ravel() for a in (xs_m, q_m3_s, p12_pa))
+        ok = np.isfinite(xs) & np.isfinite(q) & np.isfinite(p12)
+        xs, q, p12 = xs[ok], q[ok], p12[ok]
+        if xs.size < 10:
+            raise ParameterError(f'{xs.size} usable samples: at least 10 are needed')
+        if xs.size > self.max_samples:
+            keep = np.linspace(0, xs.size - 1, self.max_samples).round().astype(int)
+            xs, q, p12 = xs[keep], q[keep], p12[keep]
+        (l0, l1), (c0, c1) = WEAR_RANGES['overlap_m'], WEAR_RANGES['radial_clearance_m']
+        # 1. coarse grid: the basin of the global minimum
+        laps = np.linspace(l0, l1, self.coarse)
+        clrs = np.linspace(c0, c1, self.coarse)
+        mse, lg, cg = self._residuals(xs, q, p12, laps, clrs)
+        i, j = np.unravel_index(np.argmin(mse), mse.shape)
+        # 2. Levenberg-Marquardt from there, in micrometres, inside the swept ranges
+        lo, hi = np.array([l0, c0]) * 1e6, np.array([l1, c1]) * 1e6
+        x = np.array([laps[i], clrs[j]]) * 1e6
+        scale = max(float(np.sqrt(np.mean(p12 ** 2))), 1e3)
+
+        def resid(v):
+            return (self._predict(xs, q, v[0] * 1e-6, v[1] * 1e-6) - p12) / scale
+
+        r = resid(x)
+        cost = float(r @ r)
+        lam = 1e-2
+        jac = None
+        for _ in range(self.iterations):
+            h = 1e-3
+            jac = np.stack([(resid(x + h * e) - r) / h for e in np.eye(2)], axis=1)
+            g = jac.T @ r
+            a = jac.T @ jac
+            step = np.linalg.solve(a + lam * np.diag(np.diag(a) + 1e-12), -g)
+            x_new = np.clip(x + step, lo, hi)
+            r_new = resid(x_new)
+            cost_new = float(r_new @ r_new)
+            if cost_new < cost:
+                converged = abs(cost - cost_new) <= 1e-10 * cost or np.all(
+                    np.abs(x_new - x) < 1e-5)
+                x, r, cost, lam = x_new, r_new, cost_new, max(lam / 10, 1e-9)
+                if converged:
+                    break
+            else:
+                lam *= 10
+                if lam > 1e8:
+                    break
+        # 3. uncertainty: sigma^2 (J^T J)^-1 with sigma^2 from the residual
+        dof = max(xs.size - 2, 1)
+        sigma2 = cost / dof
+        try:
+            cov = np.linalg.inv(jac.T @ jac) * sigma2 if jac is not None else np.full((2, 2),
+                                                                                        np.nan)
+        except np.linalg.LinAlgError:
+            cov = np.full((2, 2), np.inf)
+        std = np.sqrt(np.abs(np.diag(cov))) * 1e-6
+        return HealthEstimate(radial_clearance_m=float(x[1] * 1e-6),
+                              radial_clearance_std_m=float(std[1]),
+                              overlap_m=float(x[0] * 1e-6), overlap_std_m=float(std[0]),
+                              pressure_residual_pa=float(np.sqrt(cost / xs.size) * scale),
+                              samples_used=int(xs.size), method=self.method)
+
+
+@dataclasses.dataclass(frozen=True)
+class HealthThresholds:
+    """Limits of the health levels (``config/health.yaml``)."""
+
+    clearance_warn_m: float
+    clearance_error_m: float
+    overlap_warn_m: float
+    overlap_error_m: float
+    residual_error_pa: float
+
+    @classmethod
+    def load(cls, path=None) -> 'HealthThresholds':
+        from eha_ros.physics.params import config_dir
+        path = path or config_dir() / 'health.yaml'
+        doc = read_yaml(path, 'health threshold')
+        fields = [f.name for f in dataclasses.fields(cls)]
+        if not isinstance(doc, dict):
+            raise ParameterError(f'malformed health threshold file {path}: expected a mapping')
+        missing = [f for f in fields if f not in doc]
+        unknown = sorted(set(doc) - set(fields))
+        if missing or unknown:
+            what = f'missing {missing[0]}' if missing else f'unknown {unknown[0]}'
+            raise ParameterError(f'{path}: {what}')
+        try:
+            values = {f: float(doc[f]['value'] if isinstance(doc[f], dict) else doc[f])
+                      for f in fields}
+        except (TypeError, ValueError, KeyError):
+            raise ParameterError(f'{path}: every threshold must be a number') from None
+        t = cls(**values)
+        if not (t.clearance_warn_m < t.clearance_error_m and t.overlap_error_m
+                < t.overlap_warn_m and t.residual_error_pa > 0):
+            raise ParameterError(f'{path}: need clearance_warn < clearance_error, overlap_error '
+                                 '< overlap_warn and a positive residual limit')
+        return t
+
+
+def classify(est: HealthEstimate, limits: HealthThresholds) -> tuple[int, str]:
+    """Level (OK/WARN/ERROR) and a one-line reason."""
+    if est.pressure_residual_pa > limits.residual_error_pa:
+        return ERROR, (f'valve model does not explain the data (residual '
+                       f'{est.pressure_residual_pa / 1e6:.2f} MPa)')
+    c_um, o_um = est.radial_clearance_m * 1e6, est.overlap_m * 1e6
+    if est.radial_clearance_m >= limits.clearance_error_m:
+        return ERROR, f'radial clearance {c_um:.2f} um beyond its limit: replace the valve'
+    if est.overlap_m <= limits.overlap_error_m:
+        return ERROR, f'overlap {o_um:.2f} um: metering edges worn, replace the valve'
+    if est.radial_clearance_m >= limits.clearance_warn_m:
+        return WARN, f'radial clearance {c_um:.2f} um rising: plan maintenance'
+    if est.overlap_m <= limits.overlap_warn_m:
+        return WARN, f'overlap {o_um:.2f} um falling: plan maintenance'
+    return OK, f'clearance {c_um:.2f} um, overlap {o_um:.2f} um within limits'
