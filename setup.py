@@ -144,7 +144,7 @@ class InstallDataKeepingScripts(install_data):
 setup(
     name=PACKAGE,
     version=VERSION,
-    description='Electro-hydrostatic actuator simulation, surrogates and health '
+    description='Electro-hydraulic servo actuator simulation, surrogates and health '
                 'estimation with ROS 2 interfaces',
     license='Apache-2.0',
     python_requires='>=3.10',

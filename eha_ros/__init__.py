@@ -1,4 +1,4 @@
-"""Electro-hydrostatic actuator (EHA) with a flapper-nozzle servovalve, on ROS 2.
+"""Electro-hydraulic servo actuator (EHA) with a flapper-nozzle servovalve, on ROS 2.
 
 Subpackages: ``physics`` (plant models, numpy/numba only), ``tools`` (command-line tools),
 ``testing`` (helpers for tests that start ROS 2 processes) and ``msg`` (the ROS 2 message
