@@ -91,8 +91,10 @@ class GraphConfig:
 
 @dataclasses.dataclass
 class GraphResult:
-    """Arrays of what the collector received, in arrival order; ``health`` is a list of
-    HealthStatus messages."""
+    """Arrays of what the collector received, in arrival order (``arrival_s``: monotonic
+    receipt time of states and current commands); ``health`` is a list of HealthStatus
+    messages; ``wall_s`` from start-up to the last state.  In lockstep, ticks the plant
+    re-sent (``resent_ticks`` of them) appear once."""
 
     state: dict
     command: dict
@@ -100,6 +102,7 @@ class GraphResult:
     health: list
     wall_s: float
     config: GraphConfig
+    resent_ticks: int = 0
 
     @property
     def sim_s(self) -> float:
@@ -121,14 +124,23 @@ class _Collector:
 
         from eha_ros.msg import ActuatorCommand, ActuatorState, HealthStatus, ServovalveCommand
         from eha_ros.nodes.common import (TOPIC_COMMAND, TOPIC_HEALTH, TOPIC_SERVOVALVE,
-                                          TOPIC_STATE)
-        self.node = Node('eha_harness_collector', context=context)
+                                          TOPIC_STATE, subscribe)
+        self.node = Node('eha_harness_collector', context=context,
+                         start_parameter_services=False)
         self.states, self.commands, self.currents, self.health = [], [], [], []
-        self.node.create_subscription(ActuatorState, TOPIC_STATE, self.states.append, qos)
-        self.node.create_subscription(ActuatorCommand, TOPIC_COMMAND, self.commands.append, qos)
-        self.node.create_subscription(ServovalveCommand, TOPIC_SERVOVALVE, self.currents.append,
-                                      qos)
-        self.node.create_subscription(HealthStatus, TOPIC_HEALTH, self.health.append, qos)
+        self.state_arrival, self.current_arrival = [], []
+
+        def on_state(msg):
+            self.state_arrival.append(time.monotonic())
+            self.states.append(msg)
+
+        def on_current(msg):
+            self.current_arrival.append(time.monotonic())
+            self.currents.append(msg)
+        subscribe(self.node, ActuatorState, TOPIC_STATE, on_state)
+        subscribe(self.node, ActuatorCommand, TOPIC_COMMAND, self.commands.append)
+        subscribe(self.node, ServovalveCommand, TOPIC_SERVOVALVE, on_current)
+        subscribe(self.node, HealthStatus, TOPIC_HEALTH, self.health.append)
 
     def set_parameters(self, executor, target: str, values: dict, timeout_s: float = 10.0):
         """Set parameters of node ``target`` through its parameter service."""
@@ -151,16 +163,39 @@ class _Collector:
         def stamps(msgs):
             return np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
                              for m in msgs], dtype=np.int64)
+
+        def first_per_stamp(msgs, arrivals):
+            """In lockstep a tick the plant re-sends (and the controller's repeated answer)
+            carries the same content: keep the first of each stamp."""
+            if config.mode != 'lockstep':
+                return msgs, arrivals
+            seen, keep_m, keep_a = set(), [], []
+            for m, a in zip(msgs, arrivals):
+                key = (m.header.stamp.sec, m.header.stamp.nanosec)
+                if key not in seen:
+                    seen.add(key)
+                    keep_m.append(m)
+                    keep_a.append(a)
+            return keep_m, keep_a
+        self.resent = len(self.states)
+        self.states, self.state_arrival = first_per_stamp(self.states, self.state_arrival)
+        self.resent -= len(self.states)
+        self.currents, self.current_arrival = first_per_stamp(self.currents,
+                                                              self.current_arrival)
+        self.commands, _ = first_per_stamp(self.commands, [None] * len(self.commands))
         state = {f: np.array([getattr(m, f) for m in self.states]) for f in STATE_FIELDS}
         state['stamp_ns'] = stamps(self.states)
         state['tick'] = np.array([m.tick for m in self.states], dtype=np.int64)
         state['status'] = np.array([m.status for m in self.states], dtype=np.int64)
+        state['arrival_s'] = np.array(self.state_arrival)
         command = {'stamp_ns': stamps(self.commands),
                    'position_setpoint_m': np.array([m.position_setpoint_m
                                                     for m in self.commands])}
         servo = {'stamp_ns': stamps(self.currents),
-                 'current_command_a': np.array([m.current_command_a for m in self.currents])}
-        return GraphResult(state, command, servo, list(self.health), wall, config)
+                 'current_command_a': np.array([m.current_command_a for m in self.currents]),
+                 'arrival_s': np.array(self.current_arrival)}
+        return GraphResult(state, command, servo, list(self.health), wall, config,
+                           self.resent)
 
 
 def run_graph(config: GraphConfig | None = None, processes: bool = True, env: dict | None = None,

@@ -9,6 +9,7 @@ import os
 
 import pytest
 
+from eha_ros.harness import eha_graph  # noqa: F401  (fixture: the node graph in ros_env)
 from eha_ros.testing import ros_environment
 
 # Type and range checks on message field assignment. The generated message modules read this

@@ -18,8 +18,8 @@ from eha_ros.msg import ActuatorCommand
 from eha_ros.physics import ParameterError, Scenario, load_scenarios
 from eha_ros.physics.commands import WAVEFORMS
 
-from .common import (MODES, QOS, TOPIC_CLOCK, TOPIC_COMMAND, declare, ns_to_stamp, run_node,
-                     stamp_to_ns, validator)
+from .common import (MODES, TOPIC_CLOCK, TOPIC_COMMAND, advertise, declare, ns_to_stamp,
+                     run_node, stamp_to_ns, subscribe, validator)
 
 _WAVE_PARAMS = ('amplitude_m', 'frequency_rad_s', 'start_s', 'ramp_time_s', 'f0_hz', 'f1_hz',
                 'sweep_time_s')
@@ -46,11 +46,11 @@ class CommandGenerator(Node):
         self.scenario = self._build(self._values())
         self._check_mode(self.get_parameter('mode').value)
         self.add_on_set_parameters_callback(validator(self._on_set))
-        self.pub = self.create_publisher(ActuatorCommand, TOPIC_COMMAND, QOS)
+        self.pub = advertise(self, ActuatorCommand, TOPIC_COMMAND)
         self.mode = self.get_parameter('mode').value
         self.published = 0
         if self.mode == 'lockstep':
-            self.create_subscription(Clock, TOPIC_CLOCK, self._on_clock, QOS)
+            subscribe(self, Clock, TOPIC_CLOCK, self._on_clock)
         else:
             self._t0_ns = self.get_clock().now().nanoseconds
             self.create_timer(1.0 / self.get_parameter('rate_hz').value, self._on_timer)

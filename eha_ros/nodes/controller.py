@@ -20,8 +20,8 @@ from eha_ros.physics import ParameterError, load_params
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import PositionController
 
-from .common import (MODES, QOS, TOPIC_COMMAND, TOPIC_SERVOVALVE, TOPIC_STATE, declare,
-                     declare_physics, run_node, stamp_to_ns, validator)
+from .common import (MODES, TOPIC_COMMAND, TOPIC_SERVOVALVE, TOPIC_STATE, advertise, declare,
+                     declare_physics, run_node, stamp_to_ns, subscribe, validator)
 
 GAINS = ('kp_a_m', 'ki_a_m_s', 'kd_a_s_m', 'current_limit_a')
 
@@ -43,10 +43,11 @@ class Controller(Node):
         self.period_s = 1.0 / self.get_parameter('rate_hz').value
         self.params = self._params({})
         self.pid = PositionController(self.params, self.period_s)
+        PositionController(self.params, self.period_s).update(0.0, 0.0)  # JIT before tick 0
         self.add_on_set_parameters_callback(validator(self._on_set))
-        self.pub = self.create_publisher(ServovalveCommand, TOPIC_SERVOVALVE, QOS)
-        self.create_subscription(ActuatorCommand, TOPIC_COMMAND, self._on_command, QOS)
-        self.create_subscription(ActuatorState, TOPIC_STATE, self._on_state, QOS)
+        self.pub = advertise(self, ServovalveCommand, TOPIC_SERVOVALVE)
+        subscribe(self, ActuatorCommand, TOPIC_COMMAND, self._on_command)
+        subscribe(self, ActuatorState, TOPIC_STATE, self._on_state)
         self.command_m = 0.0
         self.measured_m = 0.0
         self._commands = {}  # lockstep: stamp ns -> setpoint, for ticks not yet answered

@@ -18,8 +18,8 @@ from eha_ros.msg import ActuatorState, HealthStatus
 from eha_ros.physics import ParameterError, load_params
 from eha_ros.surrogates.health import HealthThresholds, InServiceEstimator, classify
 
-from .common import (QOS, TOPIC_DIAGNOSTICS, TOPIC_HEALTH, TOPIC_STATE, declare, run_node,
-                     stamp_to_ns, validator)
+from .common import (TOPIC_DIAGNOSTICS, TOPIC_HEALTH, TOPIC_STATE, advertise, declare,
+                     run_node, stamp_to_ns, subscribe, validator)
 
 _LEVEL_BYTES = {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, 2: DiagnosticStatus.ERROR}
 
@@ -49,9 +49,9 @@ class HealthMonitor(Node):
             model = load_surrogate(self.model_name, self.params).p12
         self.estimator = InServiceEstimator(self.params, model=model)
         self.add_on_set_parameters_callback(validator(self._on_set))
-        self.health_pub = self.create_publisher(HealthStatus, TOPIC_HEALTH, QOS)
-        self.diag_pub = self.create_publisher(DiagnosticArray, TOPIC_DIAGNOSTICS, QOS)
-        self.create_subscription(ActuatorState, TOPIC_STATE, self._on_state, QOS)
+        self.health_pub = advertise(self, HealthStatus, TOPIC_HEALTH)
+        self.diag_pub = advertise(self, DiagnosticArray, TOPIC_DIAGNOSTICS)
+        subscribe(self, ActuatorState, TOPIC_STATE, self._on_state)
         self.samples = deque()
         self.next_ns = None
         self.last = None

@@ -28,8 +28,8 @@ from eha_ros.physics import ParameterError, Plant, SimulationDiverged, load_para
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import S_P1, S_P2, S_XJ
 
-from .common import (MODES, QOS, TOPIC_CLOCK, TOPIC_SERVOVALVE, TOPIC_STATE, declare,
-                     declare_physics, ns_to_stamp, run_node, stamp_to_ns, validator)
+from .common import (MODES, TOPIC_CLOCK, TOPIC_SERVOVALVE, TOPIC_STATE, advertise, declare,
+                     declare_physics, ns_to_stamp, run_node, stamp_to_ns, subscribe, validator)
 
 MODELS = ('hf', 'lut', 'ga', 'nn', 'nn2')
 
@@ -77,6 +77,7 @@ class ServovalvePlant(Node):
         params = replace(base, **{n: self.get_parameter(n).value for n in WEAR})
         self.fluid = load_fluid(self.model, params)
         self.plant = Plant(params, dt_s=dt_s, seed=seed, fluid=self.fluid)
+        Plant(params, dt_s=dt_s, seed=seed, fluid=self.fluid).advance(0.0, 1)  # JIT first
         period_ns = round(1e9 / rate)
         if period_ns % self.plant.dt_ns:
             raise ParameterError(f'the tick period {period_ns} ns must be a whole number of '
@@ -84,15 +85,15 @@ class ServovalvePlant(Node):
         self.period_ns = period_ns
         self.steps_per_tick = period_ns // self.plant.dt_ns
         self.add_on_set_parameters_callback(validator(self._on_set))
-        self.state_pub = self.create_publisher(ActuatorState, TOPIC_STATE, QOS)
-        self.create_subscription(ServovalveCommand, TOPIC_SERVOVALVE, self._on_command, QOS)
+        self.state_pub = advertise(self, ActuatorState, TOPIC_STATE)
+        subscribe(self, ServovalveCommand, TOPIC_SERVOVALVE, self._on_command)
         self.current_a = 0.0
         self.done = False
         self.diverged = False
         self.ticks = 0
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         if self.mode == 'lockstep':
-            self.clock_pub = self.create_publisher(Clock, TOPIC_CLOCK, QOS)
+            self.clock_pub = advertise(self, Clock, TOPIC_CLOCK)
             self._started = False
             self._last_pub_ns = 0
             self._watchdog = self.create_timer(0.01, self._on_watchdog, clock=steady)

@@ -25,9 +25,10 @@ import numpy as np
 from numba import njit, prange
 
 from .params import PlantParams, default_params, replace
-from .valve import steady_pressures, valve_constants
+from .valve import steady_pressures
 
-__all__ = ['WEAR_RANGES', 'spool_grid', 'transient_map', 'steady_map', 'MapResult', 'settling_mask']
+__all__ = ['WEAR_RANGES', 'spool_grid', 'transient_map', 'steady_map', 'MapResult',
+           'settling_mask']
 
 _BLOCK = 64
 

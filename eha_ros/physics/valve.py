@@ -37,8 +37,9 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ['valve_constants', 'net_flow', 'edge_coefficients', 'orifice_flow', 'valve_coefficients', 'valve_flows',
-           'chamber_step', 'orifice_pressure_drop', 'steady_pressures']
+__all__ = ['valve_constants', 'net_flow', 'edge_coefficients', 'orifice_flow',
+           'valve_coefficients', 'valve_flows', 'chamber_step', 'orifice_pressure_drop',
+           'steady_pressures']
 
 _TINY = 1e-300
 
