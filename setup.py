@@ -43,6 +43,10 @@ CONSOLE_SCRIPTS = [
     'controller = eha_ros.nodes.controller:main',
     'servovalve_plant = eha_ros.nodes.servovalve_plant:main',
     'health_monitor = eha_ros.nodes.health_monitor:main',
+    'recorder = eha_ros.recording.recorder:main',
+    'eha-replay = eha_ros.recording.replay:main',
+    'eha-echo = eha_ros.recording.echo:main',
+    'eha-compare = eha_ros.recording.compare:main',
 ]
 LAUNCHER_DIR = os.path.join('lib', PACKAGE)
 

@@ -1,0 +1,317 @@
+"""Recording at the graph's rate: messages recorded and lost, recorder CPU, file size, replay
+timing.
+
+A synthetic publisher process stands in for the actuator graph: it publishes ``/eha/state``,
+``/eha/command``, ``/eha/servovalve_command``, ``/diagnostics`` and ``/clock`` at 1 kHz and
+``/eha/health`` at 10 Hz, with realistic contents (a full ActuatorState, a two-entry
+DiagnosticArray), on the graph's QoS, on an absolute 1 ms schedule stamped with simulated time.
+The ``recorder`` console script records everything; afterwards the first seconds of
+``/eha/state`` are replayed with ``eha-replay`` to a subscriber that compares inter-arrival
+times with the recorded spacing.
+
+Prints one JSON object::
+
+    python bench/recording.py [--duration 60] [--rate 1000] [--replay-seconds 10]
+    python bench/recording.py --graph          # record the real graph (not wired yet)
+
+Figures: per topic published / recorded / lost (sequence gaps) / missed at start; recorder CPU
+(process CPU time over wall time while publishing, 1.0 = one core); file bytes per simulated
+second; replay timing error p50/p99/max (|received inter-arrival - recorded spacing|, µs) and
+the replayed messages received.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+from pathlib import Path
+import platform
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+HERE = Path(__file__).resolve()
+BIN = Path(sys.executable).parent
+CLK_TCK = os.sysconf('SC_CLK_TCK')
+
+
+# --- synthetic publisher (subprocess role) ----------------------------------------------------
+
+def _publish(duration_s: float, rate_hz: float, wait_s: float) -> dict:
+    """Publish the graph's topics on an absolute schedule; returns counts and lateness."""
+    import rclpy
+    from rclpy.duration import Duration
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    from rosgraph_msgs.msg import Clock
+
+    from eha_ros.msg import ActuatorCommand, ActuatorState, HealthStatus, ServovalveCommand
+    from eha_ros.recording import topics
+
+    rclpy.init()
+    node = rclpy.create_node('bench_graph_publisher')
+    qos = topics.graph_qos()
+    pubs = {
+        topics.TOPIC_STATE: node.create_publisher(ActuatorState, topics.TOPIC_STATE, qos),
+        topics.TOPIC_COMMAND: node.create_publisher(ActuatorCommand, topics.TOPIC_COMMAND, qos),
+        topics.TOPIC_SERVOVALVE: node.create_publisher(ServovalveCommand,
+                                                       topics.TOPIC_SERVOVALVE, qos),
+        topics.TOPIC_DIAGNOSTICS: node.create_publisher(DiagnosticArray,
+                                                        topics.TOPIC_DIAGNOSTICS, qos),
+        topics.TOPIC_CLOCK: node.create_publisher(Clock, topics.TOPIC_CLOCK, qos),
+        topics.TOPIC_HEALTH: node.create_publisher(HealthStatus, topics.TOPIC_HEALTH, qos),
+    }
+    deadline = time.monotonic() + wait_s
+    while any(p.get_subscription_count() == 0 for p in pubs.values()):
+        if time.monotonic() > deadline:
+            raise SystemExit('bench publisher: the recorder did not match')
+        time.sleep(0.02)
+
+    state = ActuatorState(model='hf')
+    state.header.frame_id = 'jack'
+    cmd, sv, clock = ActuatorCommand(), ServovalveCommand(), Clock()
+    cmd.header.frame_id = 'jack'
+    diag = DiagnosticArray()
+    status = DiagnosticStatus(level=DiagnosticStatus.OK, name='eha/plant', message='ok',
+                              hardware_id='eha-sim')
+    status.values = [KeyValue(key='real_time_factor', value='1.0'),
+                     KeyValue(key='tick', value='0')]
+    diag.status = [status]
+    health = HealthStatus(method='bench', message='ok', samples_used=1000)
+    health_every = max(1, int(round(rate_hz / 10.0)))
+    every_tick = ((topics.TOPIC_CLOCK, clock), (topics.TOPIC_COMMAND, cmd),
+                  (topics.TOPIC_SERVOVALVE, sv), (topics.TOPIC_STATE, state),
+                  (topics.TOPIC_DIAGNOSTICS, diag))
+
+    n_ticks = int(round(duration_s * rate_hz))
+    counts = {t: 0 for t in pubs}
+    lateness = np.zeros(n_ticks)
+    period = 1.0 / rate_hz
+    start = time.monotonic()
+    for k in range(n_ticks):
+        target = start + k * period
+        now = time.monotonic()
+        if target > now:
+            time.sleep(target - now)
+        lateness[k] = time.monotonic() - target
+        t_ns = int(round(k * period * 1e9))
+        sec, nsec = divmod(t_ns, 1_000_000_000)
+        x = 0.05 * math.sin(2 * math.pi * 0.5 * k * period)
+        for msg in (state, cmd, sv, diag):
+            msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nsec
+        clock.clock.sec, clock.clock.nanosec = sec, nsec
+        state.jack_position_m = x
+        state.jack_position_measured_m = round(x / 1e-6) * 1e-6
+        state.jack_velocity_m_s = 0.05 * math.pi * math.cos(math.pi * k * period)
+        state.spool_position_m = 1e-4 * math.sin(2 * math.pi * 3 * k * period)
+        state.flapper_position_m = 1e-5 * math.sin(2 * math.pi * 3 * k * period)
+        state.p1_pa, state.p2_pa = 1.0e7 + 2e6 * x, 1.0e7 - 2e6 * x
+        state.p12_pa = 4e6 * x
+        state.load_flow_m3_s = 1e-4 * x
+        state.coil_current_a = 0.01 * math.sin(k * period)
+        state.torque_motor_force_n = 2.0 * state.coil_current_a
+        state.sim_time_s = k * period
+        state.tick = k
+        cmd.position_setpoint_m = x
+        sv.current_command_a = state.coil_current_a
+        status.values[1].value = str(k)
+        for topic, msg in every_tick:
+            pubs[topic].publish(msg)
+            counts[topic] += 1
+        if k % health_every == 0:
+            health.header.stamp.sec, health.header.stamp.nanosec = sec, nsec
+            pubs[topics.TOPIC_HEALTH].publish(health)
+            counts[topics.TOPIC_HEALTH] += 1
+    wall = time.monotonic() - start
+    for pub in pubs.values():
+        pub.wait_for_all_acked(Duration(seconds=5.0))
+    rclpy.try_shutdown()
+    return {'published': counts, 'simulated_s': n_ticks * period, 'wall_s': wall,
+            'lateness_p50_us': float(np.percentile(lateness, 50) * 1e6),
+            'lateness_p99_us': float(np.percentile(lateness, 99) * 1e6)}
+
+
+# --- replay timing (in-process subscriber) ----------------------------------------------------
+
+def _replay_timing(path: Path, seconds: float, env: dict, cwd: Path) -> dict:
+    """Replay the first ``seconds`` of /eha/state and compare inter-arrival with spacing."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    from eha_ros.msg import ActuatorState
+    from eha_ros.recording import topics
+    from eha_ros.recording.mcap_io import McapReader, McapWriter
+
+    # A file holding the first `seconds` of /eha/state, as recorded.
+    clip = cwd / 'replay_clip.mcap'
+    recorded = []
+    with McapWriter(clip) as writer:
+        reader = McapReader(path, topics=[topics.TOPIC_STATE], decode=False, strict=True)
+        for msg in reader:
+            if recorded and msg.log_time_ns - recorded[0] > seconds * 1e9:
+                break
+            if not writer.topics:
+                writer.add_topic(msg.topic, msg.type_name,
+                                 offered_qos_profiles=reader.channels[msg.topic].metadata.get(
+                                     'offered_qos_profiles'))
+            writer.write(msg.topic, msg.data, msg.log_time_ns, msg.publish_time_ns,
+                         msg.sequence)
+            recorded.append(msg.log_time_ns)
+    spacing = np.diff(np.asarray(recorded, dtype=np.int64))
+
+    received = []   # (sequence in the clip, reception time ns)
+    context = Context()
+    os.environ.update({k: env[k] for k in ('ROS_DOMAIN_ID', 'ROS_LOG_DIR',
+                                           'RMW_IMPLEMENTATION',
+                                           'ROS_AUTOMATIC_DISCOVERY_RANGE')})
+    rclpy.init(context=context, signal_handler_options=SignalHandlerOptions.NO)
+    try:
+        node = rclpy.create_node('bench_replay_sink', context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        node.create_subscription(
+            ActuatorState, topics.TOPIC_STATE,
+            lambda data, info: received.append(info['received_timestamp']),
+            topics.graph_qos(depth=1000), raw=True)
+        replay = subprocess.Popen([str(BIN / 'eha-replay'), str(clip), '--no-clock',
+                                   '--wait-for-subscribers', '10'], env=env, cwd=cwd,
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + seconds + 60
+        while time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+            if replay.poll() is not None and len(received) >= len(recorded):
+                break
+            if replay.poll() is not None:
+                deadline = min(deadline, time.monotonic() + 2.0)
+        if replay.poll() is None:
+            replay.kill()
+        replay.communicate()
+    finally:
+        rclpy.try_shutdown(context=context)
+    arrivals = np.diff(np.asarray(received, dtype=np.int64))
+    n = min(arrivals.size, spacing.size)
+    err_us = np.abs(arrivals[:n] - spacing[:n]) / 1e3
+    return {'replayed_s': seconds, 'messages': len(recorded), 'received': len(received),
+            'recorded_spacing_mean_us': float(spacing.mean() / 1e3) if spacing.size else None,
+            'error_p50_us': float(np.percentile(err_us, 50)) if n else None,
+            'error_p99_us': float(np.percentile(err_us, 99)) if n else None,
+            'error_max_us': float(err_us.max()) if n else None}
+
+
+# --- the benchmark ----------------------------------------------------------------------------
+
+def _cpu_s(pid: int) -> float:
+    fields = Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK   # utime + stime
+
+
+def start_graph(env: dict, cwd: Path, duration_s: float):
+    """Start the real actuator graph for ``duration_s`` (for ``--graph``); returns its process.
+
+    Not wired yet: the graph's launch entry point is to be called here.
+    """
+    raise NotImplementedError('--graph: starting the actuator graph is not wired yet; '
+                              'run without --graph for the synthetic 1 kHz publisher')
+
+
+def run(duration_s: float = 60.0, rate_hz: float = 1000.0, replay_s: float = 10.0,
+        graph: bool = False) -> dict:
+    """Record ``duration_s`` of 1 kHz traffic and replay part of it; returns the figures."""
+    from eha_ros.recording.mcap_io import scan
+    from eha_ros.testing import ros_environment
+
+    with ros_environment() as env, tempfile.TemporaryDirectory(prefix='eha_bench_rec_') as tmp:
+        env.pop('ROS_PYTHON_CHECK_FIELDS', None)   # field checks are a test aid, not a cost
+        cwd = Path(tmp)
+        output = cwd / 'bench.mcap'
+        recorder = subprocess.Popen([str(BIN / 'recorder'), '-o', str(output)], env=env,
+                                    cwd=cwd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                    text=True)
+        try:
+            if graph:
+                source = start_graph(env, cwd, duration_s)
+            else:
+                source = subprocess.Popen(
+                    [sys.executable, str(HERE), '--role', 'publisher', '--duration',
+                     str(duration_s), '--rate', str(rate_hz)], env=env, cwd=cwd,
+                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            # CPU of the recorder while traffic flows (discovery excluded as far as possible).
+            time.sleep(min(2.0, duration_s / 10))
+            cpu0, wall0 = _cpu_s(recorder.pid), time.monotonic()
+            out, err = source.communicate(timeout=duration_s + 120)
+            cpu1, wall1 = _cpu_s(recorder.pid), time.monotonic()
+        finally:
+            if recorder.poll() is None:
+                recorder.send_signal(signal.SIGINT)
+            _, rec_err = recorder.communicate(timeout=60)
+        if recorder.returncode != 0:
+            raise RuntimeError(f'recorder failed: {rec_err.strip()}')
+        if source.returncode != 0:
+            raise RuntimeError(f'publisher failed: {err.strip()}')
+        pub = json.loads(out.strip().splitlines()[-1])
+
+        info = scan(output, strict=True)
+        lost = info.lost_messages()
+        missed = info.run_info().get('missed_at_start', {})
+        per_topic = {}
+        for topic, published in pub['published'].items():
+            recorded = info.message_counts.get(topic, 0)
+            per_topic[topic] = {
+                'published': published, 'recorded': recorded, 'lost': lost.get(topic, 0),
+                'missed_at_start': missed.get(topic, 0),
+                'unaccounted': published - recorded - lost.get(topic, 0) - missed.get(topic, 0)}
+        size = output.stat().st_size
+        result = {
+            'benchmark': 'recording',
+            'source': 'graph' if graph else 'synthetic_publisher',
+            'rate_hz': rate_hz,
+            'simulated_s': pub['simulated_s'],
+            'publisher_wall_s': round(pub['wall_s'], 3),
+            'publisher_lateness_p50_us': round(pub['lateness_p50_us'], 1),
+            'publisher_lateness_p99_us': round(pub['lateness_p99_us'], 1),
+            'topics': per_topic,
+            'messages_recorded': sum(v['recorded'] for v in per_topic.values()),
+            'messages_lost': sum(v['lost'] for v in per_topic.values()),
+            'recorder_cpu_fraction': round((cpu1 - cpu0) / (wall1 - wall0), 3),
+            'file_bytes': size,
+            'file_bytes_per_simulated_s': round(size / pub['simulated_s']),
+            'chunks': info.chunks,
+            'replay': _replay_timing(output, min(replay_s, duration_s), env, cwd),
+            'cpu': platform.processor() or platform.machine(),
+            'cores': os.cpu_count(),
+        }
+        return result
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--duration', type=float, default=60.0, help='seconds recorded (60)')
+    ap.add_argument('--rate', type=float, default=1000.0, help='publication rate, Hz (1000)')
+    ap.add_argument('--replay-seconds', type=float, default=10.0,
+                    help='seconds of /eha/state replayed for the timing figures (10)')
+    ap.add_argument('--graph', action='store_true',
+                    help='record the real actuator graph instead of the synthetic publisher')
+    ap.add_argument('--role', choices=('bench', 'publisher'), default='bench',
+                    help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.role == 'publisher':
+        print(json.dumps(_publish(args.duration, args.rate, wait_s=15.0)))
+        return 0
+    try:
+        result = run(args.duration, args.rate, args.replay_seconds, args.graph)
+    except NotImplementedError as exc:
+        print(f'bench/recording.py: {exc}', file=sys.stderr)
+        return 2
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
