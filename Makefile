@@ -12,7 +12,7 @@
 PYTHON ?= python3
 VENV ?= .venv
 PYTEST_ARGS ?=
-BENCH ?= bench/run.py
+BENCH ?= bench/plant_rtf.py
 BENCH_ARGS ?=
 
 BIN := $(VENV)/bin
@@ -49,8 +49,10 @@ install: $(STAMPS)/package
 test: install
 	$(BIN)/pytest $(PYTEST_ARGS)
 
+# The main job: the reference's test campaign (steps, ramps, sines x hf, ga, nn, lut) through
+# the ROS 2 graph in lockstep, every run recorded to MCAP, then a report (runs/campaign-*/).
 demo: install
-	$(BIN)/eha-simulate
+	$(BIN)/eha-campaign
 
 bench: install $(STAMPS)/requirements-bench
 	$(BIN)/python $(BENCH) $(BENCH_ARGS)

@@ -47,6 +47,8 @@ CONSOLE_SCRIPTS = [
     'eha-replay = eha_ros.recording.replay:main',
     'eha-echo = eha_ros.recording.echo:main',
     'eha-compare = eha_ros.recording.compare:main',
+    'eha-diagnose = eha_ros.tools.diagnose:main',
+    'eha-campaign = eha_ros.tools.campaign:main',
 ]
 LAUNCHER_DIR = os.path.join('lib', PACKAGE)
 

@@ -48,7 +48,8 @@ class GraphConfig:
     controller, the harness's collector, the health monitor and ``recorders`` more state
     subscribers before its first tick, so nobody misses it.  ``events`` are
     ``(t_s, node_name, {parameter: value})``: set once the plant's state passes ``t_s`` (run-time
-    degradation)."""
+    degradation).  ``record``: an MCAP file the ``recorder`` node writes every graph topic to
+    (it must not exist)."""
 
     scenario: str = 'step_0p1'
     model: str = 'hf'
@@ -63,6 +64,7 @@ class GraphConfig:
     params_file: str = ''
     recorders: int = 0
     events: list = dataclasses.field(default_factory=list)
+    record: str = ''
 
     def resolved_duration(self) -> float:
         if self.duration_s is not None:
@@ -80,12 +82,15 @@ class GraphConfig:
             'servovalve_plant': dict(common, model=self.model, dt_s=float(self.dt_s),
                                      seed=int(self.seed), params_file=self.params_file,
                                      duration_s=self.resolved_duration(),
-                                     start_subscribers=2 + int(self.health) + self.recorders,
+                                     start_subscribers=(2 + int(self.health) + self.recorders
+                                                        + int(bool(self.record))),
                                      **self.plant),
         }
         if self.health:
             out['health_monitor'] = dict(params_file=self.params_file, use_sim_time=sim,
                                          **self.health_params)
+        if self.record:
+            out['recorder'] = dict(output=str(Path(self.record).resolve()))
         return out
 
 
@@ -225,9 +230,19 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
     procs, nodes = {}, []
     log_dir = Path(log_dir or tempfile.mkdtemp(prefix='eha_graph_'))
     t0 = time.monotonic()
+    if config.record and Path(config.record).exists():
+        raise GraphError(f'{config.record} exists: refusing to overwrite it')
     try:
+        bindir = Path(sys.executable).parent
+        if 'recorder' in params:  # a process of its own in either mode
+            params = dict(params)
+            p = params.pop('recorder')
+            cmd = [str(bindir / 'recorder'), '--ros-args'] + [
+                a for k, v in p.items() for a in ('-p', f'{k}:={_ros_arg(v)}')]
+            out = open(log_dir / 'recorder.log', 'wb')
+            procs['recorder'] = (subprocess.Popen(cmd, env=env, stdout=out,
+                                                  stderr=subprocess.STDOUT, cwd=log_dir), out)
         if processes:
-            bindir = Path(sys.executable).parent
             for name, p in params.items():
                 cmd = [str(bindir / name), '--ros-args']
                 for k, v in p.items():
@@ -289,6 +304,10 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
                 proc.kill()
                 proc.wait()
             out.close()
+        rec = procs.get('recorder')
+        if rec is not None and rec[0].returncode != 0 and sys.exc_info()[0] is None:
+            raise GraphError(f'recorder exited with status {rec[0].returncode}: '
+                             + _tail(log_dir / 'recorder.log'))
         for node in nodes:
             executor.remove_node(node)
             close = getattr(node, 'close', None)

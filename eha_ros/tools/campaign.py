@@ -1,0 +1,151 @@
+"""``eha-campaign`` (``make demo``): the reference's EHA test campaign through the ROS graph.
+
+Every scenario of the reference's section 6.3 (steps, ramps and sines of 0.1 and 0.01 mm) is
+run with the high-fidelity fluid block and with each shipped surrogate (ga, nn, lut), through
+the node graph in lockstep, each run recorded to MCAP by the ``recorder`` node.  Then the
+surrogate runs are compared with the hf run of the same scenario (relative Euclidean-norm error
+of jack position, P12 and spool position, as ``eha-compare``), the hf recordings are diagnosed
+offline (``eha-diagnose``), and a report is written: ``report.md`` with the comparison table and
+one folder of PNG plots per scenario (the reference's Figures 6.4-6.16).
+
+    eha-campaign [--out runs/campaign-<time>] [--scenarios a,b] [--models hf,ga,nn,lut]
+                 [--processes]
+
+Nothing existing is overwritten: the output folder must not exist.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import sys
+import time
+from pathlib import Path
+
+from eha_ros.harness import GraphConfig, GraphError, run_graph
+from eha_ros.physics import ParameterError, get_scenario
+
+THESIS_SCENARIOS = ('step_0p1', 'step_0p01', 'ramp_0p1', 'ramp_0p01', 'sine_0p1_5pi',
+                    'sine_0p1_10pi', 'sine_0p01_5pi', 'sine_0p01_10pi', 'sine_0p01_2pi')
+MODELS = ('hf', 'ga', 'nn', 'lut')
+
+
+def available_models(models):
+    from eha_ros.surrogates.base import models_dir
+    return [m for m in models if m == 'hf' or (models_dir() / f'{m}.npz').is_file()]
+
+
+def run_campaign(out: Path, scenarios=THESIS_SCENARIOS, models=MODELS, processes=False,
+                 progress=print) -> dict:
+    """Run, record, compare and report; returns the summary written to ``summary.json``."""
+    from eha_ros.recording.compare import compare_runs, load_run, plot_runs
+    from eha_ros.testing import ros_environment
+    from eha_ros.tools.diagnose import diagnose
+
+    out.mkdir(parents=True)
+    models = available_models(models)
+    runs, t_start = {}, time.monotonic()
+    total = len(scenarios) * len(models)
+    k = 0
+    for sc in scenarios:
+        get_scenario(sc)
+        for model in models:
+            k += 1
+            path = out / f'{sc}_{model}.mcap'
+            with ros_environment() as env:
+                r = run_graph(GraphConfig(scenario=sc, model=model, mode='lockstep',
+                                          record=str(path)),
+                              processes=processes, env=env, timeout_s=120)
+            runs[(sc, model)] = {'file': path.name, 'sim_s': r.sim_s,
+                                 'wall_s': round(r.wall_s, 2), 'ticks': int(r.state['tick'].size)}
+            progress(f'[{k:2d}/{total}] {sc:15s} {model:4s} {r.sim_s:5.2f} s simulated in '
+                     f'{r.wall_s:5.1f} s  -> {path.name}')
+    table, diagnoses = {}, {}
+    for sc in scenarios:
+        files = [out / f'{sc}_{m}.mcap' for m in models]
+        loaded = [load_run(str(f)) for f in files]
+        result = compare_runs(loaded, reference=0)
+        plot_runs(loaded, out / sc)
+        table[sc] = {r['label']: r['relative_error'] for r in result['runs']}
+        diagnoses[sc] = diagnose(str(out / f'{sc}_hf.mcap'))
+    summary = {'models': models, 'scenarios': list(scenarios),
+               'wall_s': round(time.monotonic() - t_start, 1),
+               'runs': {f'{s}/{m}': v for (s, m), v in runs.items()},
+               'relative_error_vs_hf': table, 'diagnosis_hf': diagnoses}
+    (out / 'summary.json').write_text(json.dumps(summary, indent=1))
+    (out / 'report.md').write_text(_report(summary))
+    return summary
+
+
+def _report(s) -> str:
+    surrogates = [m for m in s['models'] if m != 'hf']
+    lines = ['# EHA test campaign', '',
+             f'Scenarios of the reference (section 6.3) through the ROS 2 graph in lockstep, '
+             f'1 kHz, plant step 1 us; {len(s["runs"])} runs in {s["wall_s"]} s.', '',
+             'Relative Euclidean-norm error against the high-fidelity run, '
+             '`||x - x_hf|| / ||x_hf||`:', '',
+             '| scenario | ' + ' | '.join(f'{m}: jack | {m}: P12 | {m}: spool'
+                                          for m in surrogates) + ' |',
+             '| --- |' + ' ---: |' * (3 * len(surrogates))]
+    for sc, errs in s['relative_error_vs_hf'].items():
+        cells = []
+        for m in surrogates:
+            e = errs.get(m, {})
+            cells += [_pct(e.get('jack_position_m')), _pct(e.get('p12_pa')),
+                      _pct(e.get('spool_position_m'))]
+        lines.append(f'| {sc} | ' + ' | '.join(cells) + ' |')
+    lines += ['', 'Offline diagnosis of the hf recordings (`eha-diagnose`, nominal valve: '
+              'clearance 2.5 um, overlap 1 um):', '',
+              '| scenario | clearance [um] | overlap [um] | residual [MPa] | level |',
+              '| --- | ---: | ---: | ---: | --- |']
+    for sc, d in s['diagnosis_hf'].items():
+        lines.append(f'| {sc} | {d["radial_clearance_m"] * 1e6:.2f} ± '
+                     f'{d["radial_clearance_std_m"] * 1e6:.2f} | {d["overlap_m"] * 1e6:.2f} ± '
+                     f'{d["overlap_std_m"] * 1e6:.2f} | {d["pressure_residual_pa"] / 1e6:.3f} | '
+                     f'{d["level"]} |')
+    lines += ['', 'Plots: one folder per scenario (`jack_position.png`, `p12.png`, '
+              '`spool_position.png`), every model overlaid.', '',
+              'Runs (simulated / wall seconds):', '']
+    for key, r in s['runs'].items():
+        lines.append(f'- `{r["file"]}`: {r["sim_s"]:.2f} s / {r["wall_s"]:.1f} s, '
+                     f'{r["ticks"]} ticks')
+    return '\n'.join(lines) + '\n'
+
+
+def _pct(x):
+    return 'n/a' if x is None else f'{100 * x:.2f} %'
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog='eha-campaign', description=__doc__.splitlines()[0])
+    stamp = datetime.datetime.now().strftime('%Y%m%d-%H%M%S')
+    ap.add_argument('--out', type=Path, default=Path('runs') / f'campaign-{stamp}')
+    ap.add_argument('--scenarios', default=','.join(THESIS_SCENARIOS))
+    ap.add_argument('--models', default=','.join(MODELS))
+    ap.add_argument('--processes', action='store_true',
+                    help='each node its own process (default: one process, one executor)')
+    args = ap.parse_args(argv)
+    if args.out.exists():
+        print(f'eha-campaign: error: {args.out} exists: refusing to overwrite it',
+              file=sys.stderr)
+        return 2
+    unknown = [m for m in args.models.split(',') if m not in MODELS]
+    if unknown:
+        print(f'eha-campaign: error: unknown model {unknown[0]!r} (one of {", ".join(MODELS)})',
+              file=sys.stderr)
+        return 2
+    try:
+        s = run_campaign(args.out, args.scenarios.split(','), args.models.split(','),
+                         args.processes, progress=lambda line: print(line, flush=True))
+    except (ParameterError, GraphError) as exc:
+        print(f'eha-campaign: error: {exc}', file=sys.stderr)
+        return 2
+    print(f'\n{args.out / "report.md"}:\n')
+    print((args.out / 'report.md').read_text())
+    print(f'campaign done in {s["wall_s"]} s')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
