@@ -1,6 +1,6 @@
 # eha_ros: build, install and test in a local virtual environment (.venv).
 #
-#   make demo    install, then run the simulation demo (eha-simulate)
+#   make demo    install, then run the main job: the test campaign through the ROS graph
 #   make test    install, then run the test suite against the installed package
 #   make install create .venv, install requirements.txt and the package (non-editable)
 #   make bench   install, plus requirements-bench.txt, then run the benchmarks
