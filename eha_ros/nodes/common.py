@@ -13,26 +13,21 @@ from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescr
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from eha_ros.physics import ParameterError
 from eha_ros.physics.params import SPEC_BY_NAME
+
+from eha_ros.recording.topics import (TOPIC_CLOCK, TOPIC_COMMAND, TOPIC_DIAGNOSTICS,
+                                      TOPIC_HEALTH, TOPIC_SERVOVALVE, TOPIC_STATE, graph_qos)
 
 __all__ = ['TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOPIC_HEALTH',
            'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'QOS', 'MODES', 'declare', 'declare_physics',
            'run_node', 'stamp_to_ns', 'ns_to_stamp']
 
-TOPIC_COMMAND = '/eha/command'
-TOPIC_SERVOVALVE = '/eha/servovalve_command'
-TOPIC_STATE = '/eha/state'
-TOPIC_HEALTH = '/eha/health'
-TOPIC_DIAGNOSTICS = '/diagnostics'
-TOPIC_CLOCK = '/clock'
-
-#: Every graph topic: reliable, last 100 kept, volatile.  In lockstep one message per topic is
-#: in flight at a time; in realtime 100 samples absorb a 0.1 s stall at 1 kHz.
-QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
-                 reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+#: Every graph topic (names and QoS from :mod:`eha_ros.recording.topics`): reliable, last 100
+#: kept, volatile.  In lockstep one message per topic is in flight at a time; in realtime 100
+#: samples absorb a 0.1 s stall at 1 kHz.
+QOS = graph_qos()
 
 #: Timing modes: wall-clock timers (a rig), or the plant paces everything through /clock.
 MODES = ('realtime', 'lockstep')
