@@ -126,3 +126,17 @@ def test_realtime_mode_ticks_at_its_rate(eha_graph):
     steps = np.diff(r.state['tick'])
     assert np.all(steps == 1000)
     assert r.state['jack_position_m'].max() > 0.5e-3
+
+
+@pytest.mark.parametrize('model', ['lut', 'ga', 'nn'])
+def test_loop_with_each_surrogate_is_stable_and_matches_its_physics_run(eha_graph, model):
+    """The plant with a surrogate fluid block closes the loop: the 0.1 mm step settles within
+    the static band and the graph reproduces the physics-only run with that surrogate."""
+    from eha_ros.surrogates.base import load_surrogate
+    r = eha_graph(processes=False, scenario='step_0p1', model=model, duration_s=0.2)
+    assert set(r.state['status']) <= {0}
+    x = r.state['jack_position_m']
+    assert np.all(np.isfinite(x)) and abs(x[-1] - 1e-4) < 0.15e-4
+    ref = simulate(default_params(), 'step_0p1', duration_s=0.2, controller_period_s=1e-3,
+                   record_dt_s=None, fluid=load_surrogate(model))
+    assert_array_equal(x, ref['jack_position_m'][:x.size])

@@ -1,0 +1,424 @@
+"""Wear diagnosis from pressure curves (the reference's section 5.4.3): a network that reads
+one characteristic curve - the 133 values of P12 along the spool grid at one imposed flow - and
+that flow, and returns the radial clearance and the overlap of the valve.
+
+Network
+    134 inputs (133 pressures [Pa] and the flow [m^3/s]), each min-max normalised to [-1, 1]
+    on the training split; tanh hidden layers; 2 linear outputs, the clearance and the overlap,
+    min-max normalised over the training split (the wear ranges of DB4).  The shipped default
+    (``diag.npz``, :data:`DIAG_SETTINGS`) has two hidden layers of 64 trained by Adam then
+    L-BFGS; the reference's network (one hidden layer of 10, Levenberg-Marquardt,
+    :data:`DIAG_THESIS_SETTINGS`) is trained alongside and its held-out errors are recorded in
+    the artefact's metadata (``alternatives``): the default's are about three times smaller.
+
+Symmetry
+    With equal supply and return overlaps the valve is antisymmetric,
+    ``P12(-XS, -Q) = -P12(XS, Q)``, so a curve at a negative flow is mapped onto the positive
+    flow (:func:`canonical_curves`) before it reaches the network, which is trained on the
+    non-negative flows only.  This halves what the network has to learn; it cut the held-out
+    errors of the reference's network by a factor of four to six.
+
+Training (torch, imported inside the training functions)
+    On DB4 (900 maps x 15 flows), whole maps held out: every curve of a held-out
+    ``(overlap, clearance)`` pair is out of training (90 test and 45 validation pairs from the
+    interior of the wear grid).  Noise augmentation: two noisy copies of every training curve
+    with the noise model below (validation on clean and noisy curves).
+
+Noise model
+    ``P_noisy = P (1 + 0.01 n)``, ``n`` standard normal, independent per point: 1 % of each
+    pressure's magnitude (``noise='relative'``, the default).  ``noise='rms'`` instead adds 1 %
+    of the curve's RMS to every point (harsher near null, where P12 is small).
+
+Per-map estimate
+    A map (the curves at several flows of one valve) gives one estimate per curve; they are
+    combined by their median, and their standard deviation is the spread reported as the
+    uncertainty.
+
+Errors are reported in % of each parameter's range (:data:`WEAR_RANGES`).  Inference is numpy
+only (:func:`estimate_wear`, :func:`estimate_wear_batch`, :func:`estimate_wear_map`).
+
+Build: ``python -m eha_ros.surrogates.diagnostics`` (:func:`build_artefact`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from eha_ros.physics import PlantParams, default_params
+from eha_ros.physics.maps import WEAR_RANGES
+
+from .base import SurrogateError, load_artefact, models_dir, save_artefact
+from .database import Database, fluid_hash, get_database
+
+__all__ = ['WearEstimate', 'DiagnosticModel', 'load_diagnostic', 'estimate_wear',
+           'estimate_wear_batch', 'estimate_wear_map', 'add_noise', 'curves_from_maps',
+           'wear_errors', 'train_diagnostic', 'build_artefact', 'DIAG_SETTINGS',
+           'DIAG_THESIS_SETTINGS', 'canonical_curves',
+           'OUTPUT_NAMES', 'OUTPUT_UNITS']
+
+#: The network's outputs, in order (the reference's order: clearance, then overlap).
+OUTPUT_NAMES = ('radial_clearance_m', 'overlap_m')
+OUTPUT_UNITS = ('m', 'm')
+
+#: Settings of the shipped diagnostic network: two hidden layers of 64, Adam then L-BFGS.
+#: Stopping is by step counts (the time limit is only a safeguard): a build is reproducible.
+DIAG_SETTINGS = {
+    'hidden': [64, 64], 'database': 'DB4', 'n_test': 90, 'n_val': 45, 'split_seed': 2,
+    'seed': 0, 'symmetric': True, 'noise_copies': 2, 'noise_level': 0.01, 'noise': 'relative',
+    'algorithm': 'adam_lbfgs',
+    'adam_lbfgs': {'adam_steps': 50000, 'batch': 512, 'lr': 3e-3, 'lr_final': 1e-5,
+                   'lbfgs_iters': 5000, 'time_limit_s': 3600.0},
+    'lm': {'epochs': 150, 'subsample': 15000, 'resample_every': 50, 'max_fail': 60,
+           'time_limit_s': 3600.0},
+}
+
+#: The reference's configuration (one hidden layer of 10, Levenberg-Marquardt), trained
+#: alongside for comparison; its errors are recorded in the shipped artefact's metadata.
+DIAG_THESIS_SETTINGS = {'hidden': [10], 'algorithm': 'lm'}
+
+
+@dataclasses.dataclass
+class WearEstimate:
+    """Wear of one valve from a map: combined estimate and spread over its curves."""
+
+    radial_clearance_m: float
+    overlap_m: float
+    radial_clearance_std_m: float
+    overlap_std_m: float
+    curves_used: int
+    per_curve_clearance_m: np.ndarray
+    per_curve_overlap_m: np.ndarray
+
+
+@dataclasses.dataclass
+class DiagnosticModel:
+    """A loaded diagnostic network: spool grid, normalisations, weights and metadata."""
+
+    xs_m: np.ndarray
+    in_norm: np.ndarray     # (2, 134): mid, half
+    out_norm: np.ndarray    # (2, 2): mid, half of (clearance, overlap)
+    weights: list           # [(W (d_in, d_out), b (d_out,)), ...]
+    meta: dict
+
+    @property
+    def symmetric(self) -> bool:
+        return bool(self.meta.get('symmetric', False))
+
+    def forward(self, p12_curves_pa, q_m3_s):
+        """``(n, 2)`` (clearance, overlap) [m] for curves ``(n, 133)`` [Pa] and flows ``(n,)``."""
+        if self.symmetric:
+            p12_curves_pa, q_m3_s = canonical_curves(p12_curves_pa, q_m3_s)
+        x = np.concatenate([p12_curves_pa, q_m3_s[:, None]], axis=1)
+        h = (x - self.in_norm[0]) / self.in_norm[1]
+        for n, (w, b) in enumerate(self.weights):
+            h = h @ w + b
+            if n < len(self.weights) - 1:
+                h = np.tanh(h)
+        return self.out_norm[0] + self.out_norm[1] * h
+
+    def data(self) -> tuple:
+        """The arrays as saved: ``(layout, xs_m, in_norm, out_norm, theta)``."""
+        sizes = [self.in_norm.shape[1]] + [b.size for _, b in self.weights]
+        theta = np.concatenate([np.concatenate([w.ravel(), b]) for w, b in self.weights])
+        return (np.array(sizes, dtype=float), self.xs_m, self.in_norm, self.out_norm, theta)
+
+    @classmethod
+    def from_data(cls, data, meta) -> 'DiagnosticModel':
+        layout, xs, in_norm, out_norm, theta = (np.asarray(a, dtype=float) for a in data)
+        sizes = [int(s) for s in layout]
+        weights = []
+        k = 0
+        for di, do in zip(sizes[:-1], sizes[1:]):
+            w = theta[k:k + di * do].reshape(di, do)
+            k += di * do
+            weights.append((w, theta[k:k + do]))
+            k += do
+        if k != theta.size or in_norm.shape != (2, sizes[0]) or xs.size + 1 != sizes[0]:
+            raise SurrogateError('diagnostic artefact: weights do not match their layout')
+        return cls(xs, in_norm, out_norm, weights, meta)
+
+
+def load_diagnostic(params: PlantParams | None = None, path: Path | None = None,
+                    ) -> DiagnosticModel:
+    """Load the shipped diagnostic network (``models/diag.npz``) and check it was built for
+    ``params`` (default: the nominal parameters); :class:`SurrogateError` otherwise."""
+    p = params if params is not None else default_params()
+    path = Path(path) if path is not None else models_dir() / 'diag.npz'
+    model = _load_cached(str(path.resolve()), path.stat().st_mtime_ns if path.is_file() else 0)
+    if model.meta.get('fluid_hash') != fluid_hash(p):
+        raise SurrogateError(
+            f'diagnostic network {path.name} was built for fluid parameters '
+            f'{model.meta.get("fluid_hash")}, these are {fluid_hash(p)}: retrain it '
+            '(python -m eha_ros.surrogates.diagnostics) or use the parameters it was built for')
+    return model
+
+
+@functools.lru_cache(maxsize=4)
+def _load_cached(path: str, mtime_ns: int) -> DiagnosticModel:
+    data, meta = load_artefact(Path(path))
+    if meta.get('kind') != 'diag':
+        raise SurrogateError(f'{path}: not a diagnostic network (kind {meta.get("kind")!r})')
+    return DiagnosticModel.from_data(data, meta)
+
+
+def _curves(model: DiagnosticModel, p12, xs_m):
+    p12 = np.atleast_2d(np.asarray(p12, dtype=float))
+    if xs_m is not None:
+        xs_m = np.asarray(xs_m, dtype=float)
+        p12 = np.stack([np.interp(model.xs_m, xs_m, c) for c in p12])
+    if p12.shape[1] != model.xs_m.size:
+        raise ValueError(f'a curve holds {model.xs_m.size} pressures on the spool grid '
+                         f'(got {p12.shape[1]}); pass xs_m to resample another grid')
+    if not np.all(np.isfinite(p12)):
+        raise ValueError('pressures must be finite')
+    return p12
+
+
+def estimate_wear_batch(p12_curves_pa, q_m3_s, xs_m=None, model: DiagnosticModel | None = None,
+                        ):
+    """Clearance [m] and overlap [m] arrays, one per curve.
+
+    Parameters
+    ----------
+    p12_curves_pa : array (n, 133)
+        P12 [Pa] along the model's spool grid (:func:`eha_ros.physics.maps.spool_grid`), or
+        along ``xs_m`` (then linearly resampled).
+    q_m3_s : array (n,) or float
+        Imposed flow [m^3/s] of each curve.
+    """
+    m = model if model is not None else load_diagnostic()
+    p12 = _curves(m, p12_curves_pa, xs_m)
+    q = np.broadcast_to(np.asarray(q_m3_s, dtype=float), (p12.shape[0],))
+    out = m.forward(p12, np.ascontiguousarray(q))
+    return out[:, 0], out[:, 1]
+
+
+def estimate_wear(p12_curve_pa, q_m3_s: float, xs_m=None,
+                  model: DiagnosticModel | None = None) -> tuple[float, float]:
+    """``(radial_clearance_m, overlap_m)`` from one curve (133 P12 values [Pa] along the spool
+    grid) at flow ``q_m3_s`` [m^3/s]."""
+    c, o = estimate_wear_batch(np.asarray(p12_curve_pa, dtype=float)[None, :], [q_m3_s],
+                               xs_m=xs_m, model=model)
+    return float(c[0]), float(o[0])
+
+
+def estimate_wear_map(p12_map_pa, q_m3_s, xs_m=None, model: DiagnosticModel | None = None,
+                      combine: str = 'median') -> WearEstimate:
+    """Wear from a map ``(133, n_q)`` [Pa] at flows ``(n_q,)`` [m^3/s]: the per-curve
+    estimates combined by ``combine`` (``'median'`` or ``'mean'``), with their standard
+    deviation as the spread."""
+    p12 = np.asarray(p12_map_pa, dtype=float)
+    q = np.asarray(q_m3_s, dtype=float).ravel()
+    if p12.ndim != 2 or p12.shape[1] != q.size:
+        raise ValueError('p12_map_pa must be (n_xs, n_q) with one flow per column')
+    c, o = estimate_wear_batch(p12.T, q, xs_m=xs_m, model=model)
+    agg = {'median': np.median, 'mean': np.mean}[combine]
+    return WearEstimate(float(agg(c)), float(agg(o)), float(np.std(c)), float(np.std(o)),
+                        int(q.size), c, o)
+
+
+# --- data, noise, errors ---------------------------------------------------------------------
+
+def canonical_curves(p12_curves_pa, q_m3_s):
+    """Curves at negative flow mapped onto positive flow by the valve's symmetry.
+
+    With equal supply and return overlaps the valve is antisymmetric,
+    ``P12(-XS, -Q) = -P12(XS, Q)``; on the antisymmetric spool grid the curve at ``-Q`` is
+    ``-curve[::-1]`` of the curve at ``Q``.  Curves ``(n, n_xs)``, flows ``(n,)``.
+    """
+    p12 = np.asarray(p12_curves_pa, dtype=float)
+    q = np.asarray(q_m3_s, dtype=float)
+    neg = q < 0.0
+    out = p12.copy()
+    out[neg] = -p12[neg, ::-1]
+    return out, np.abs(q)
+
+
+def add_noise(p12, level: float, rng: np.random.Generator, noise: str = 'relative'):
+    """Gaussian noise on curves ``(..., n_xs)``: ``'relative'``, standard deviation ``level``
+    times each pressure's magnitude; ``'rms'``, ``level`` times the RMS of each curve."""
+    p12 = np.asarray(p12, dtype=float)
+    n = rng.standard_normal(p12.shape)
+    if noise == 'relative':
+        return p12 * (1.0 + level * n)
+    if noise == 'rms':
+        rms = np.sqrt(np.mean(p12 ** 2, axis=-1, keepdims=True))
+        return p12 + level * rms * n
+    raise ValueError(f'unknown noise model {noise!r}')
+
+
+def curves_from_maps(db: Database, pairs):
+    """Curves ``(n, 133)``, flows ``(n,)``, true wear ``(n, 2)`` (clearance, overlap) and map
+    index ``(n,)`` for the maps ``pairs`` (``(i_overlap, j_clearance)``) of ``db``."""
+    curves, qs, wear, idx = [], [], [], []
+    for m, (i, j) in enumerate(pairs):
+        curves.append(db.p12_pa[:, :, i, j].T)
+        qs.append(db.q_m3_s)
+        wear.append(np.tile([db.clearance_m[j], db.overlap_m[i]], (db.q_m3_s.size, 1)))
+        idx.append(np.full(db.q_m3_s.size, m))
+    return (np.concatenate(curves), np.concatenate(qs), np.concatenate(wear),
+            np.concatenate(idx))
+
+
+def _ranges():
+    return np.array([np.diff(WEAR_RANGES['radial_clearance_m'])[0],
+                     np.diff(WEAR_RANGES['overlap_m'])[0]])
+
+
+def wear_errors(model: DiagnosticModel, curves, q, wear, map_index, *, noise_level=0.0,
+                noise='relative', seed=0) -> dict:
+    """Errors in % of each parameter's range (:data:`WEAR_RANGES`), per curve and per map
+    (median of the map's curves): mean, max and RMS for clearance and overlap."""
+    rng = np.random.default_rng(seed)
+    x = add_noise(curves, noise_level, rng, noise) if noise_level else curves
+    est = model.forward(x, q)
+    err = np.abs(est - wear) / _ranges() * 100.0
+    maps = np.unique(map_index)
+    est_map = np.stack([np.median(est[map_index == m], axis=0) for m in maps])
+    true_map = np.stack([wear[map_index == m][0] for m in maps])
+    err_map = np.abs(est_map - true_map) / _ranges() * 100.0
+    out = {}
+    for k, name in enumerate(('clearance', 'overlap')):
+        for tag, e in (('curve', err[:, k]), ('map', err_map[:, k])):
+            out[f'{name}_{tag}'] = {'mean': float(e.mean()), 'max': float(e.max()),
+                                    'rms': float(np.sqrt(np.mean(e ** 2)))}
+    out['n_curves'] = int(est.shape[0])
+    out['n_maps'] = int(maps.size)
+    return out
+
+
+# --- training ---------------------------------------------------------------------------------
+
+def _half(curves, q, wear):
+    """The curves at non-negative flow, the zero-flow curve (which may be stored at a flow of
+    -1e-21) included, in the canonical form of :func:`canonical_curves`."""
+    keep = q >= -1e-9 * np.max(np.abs(q))
+    c, qc = canonical_curves(curves[keep], q[keep])
+    return c, qc, wear[keep]
+
+
+def _train_one(x_tr, y_tr, x_va, y_va, *, hidden, algorithm, seed, settings, threads):
+    """Fit normalisation on the training split, train, return ``(model, history, wall_s)``."""
+    import torch
+
+    from .nn import make_torch_mlp, train_adam_lbfgs, train_lm
+    lo, hi = x_tr.min(axis=0), x_tr.max(axis=0)
+    in_norm = np.stack([0.5 * (hi + lo), np.where(hi > lo, 0.5 * (hi - lo), 1.0)])
+    lo, hi = y_tr.min(axis=0), y_tr.max(axis=0)
+    out_norm = np.stack([0.5 * (hi + lo), np.where(hi > lo, 0.5 * (hi - lo), 1.0)])
+    to_t = (lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64))
+    xt, yt = to_t((x_tr - in_norm[0]) / in_norm[1]), to_t((y_tr - out_norm[0]) / out_norm[1])
+    xv, yv = to_t((x_va - in_norm[0]) / in_norm[1]), to_t((y_va - out_norm[0]) / out_norm[1])
+    net = make_torch_mlp(d_in=x_tr.shape[1], d_hidden=hidden, d_out=y_tr.shape[1], seed=seed)
+    t0 = time.perf_counter()
+    if algorithm == 'lm':
+        hist = train_lm(net, xt, yt, x_val=xv, y_val=yv, seed=seed, threads=threads,
+                        **settings)
+    elif algorithm == 'adam_lbfgs':
+        hist = train_adam_lbfgs(net, xt, yt, x_val=xv, y_val=yv, seed=seed, threads=threads,
+                                **settings)
+    else:
+        raise ValueError(f'unknown training algorithm {algorithm!r}')
+    wall = time.perf_counter() - t0
+    weights = [(w.detach().numpy().copy(), b.detach().numpy().copy()) for w, b in net.layers()]
+    return weights, in_norm, out_norm, hist, wall
+
+
+def train_diagnostic(*, settings: dict | None = None, params: PlantParams | None = None,
+                     threads: int = 2, verbose: bool = False) -> DiagnosticModel:
+    """Train the diagnostic network on DB4 with whole maps held out; returns the model with
+    its metadata (held-out errors clean and noisy, per curve and per map)."""
+    p = params if params is not None else default_params()
+    st = dict(DIAG_SETTINGS)
+    st.update(settings or {})
+    from .nn import map_split
+    db = get_database(st['database'], p)
+    train, val, test = map_split(db.overlap_m.size, db.clearance_m.size, n_test=st['n_test'],
+                                 n_val=st['n_val'], seed=st['split_seed'])
+    rng = np.random.default_rng(st['seed'])
+    c_tr, q_tr, w_tr, _ = curves_from_maps(db, train)
+    c_va, q_va, w_va, i_va = curves_from_maps(db, val)
+    if st['symmetric']:
+        # train on the non-negative half (the negative flows are its mirror image)
+        c_tr, q_tr, w_tr = _half(c_tr, q_tr, w_tr)
+        c_va, q_va, w_va = _half(c_va, q_va, w_va)
+    c_te, q_te, w_te, i_te = curves_from_maps(db, test)
+    copies = [c_tr] + [add_noise(c_tr, st['noise_level'], rng, st['noise'])
+                       for _ in range(st['noise_copies'])]
+    x_tr = np.concatenate([np.concatenate([c, q_tr[:, None]], axis=1) for c in copies])
+    y_tr = np.tile(w_tr, (len(copies), 1))
+    c_va_noisy = add_noise(c_va, st['noise_level'], rng, st['noise'])
+    x_va = np.concatenate([np.concatenate([c, q_va[:, None]], axis=1)
+                           for c in (c_va, c_va_noisy)])
+    y_va = np.tile(w_va, (2, 1))
+    alg = st['algorithm']
+    weights, in_norm, out_norm, hist, wall = _train_one(
+        x_tr, y_tr, x_va, y_va, hidden=st['hidden'], algorithm=alg, seed=st['seed'],
+        settings=st[alg], threads=threads)
+    meta = {
+        'kind': 'diag', 'format': 1,
+        'symmetric': bool(st['symmetric']),
+        'inputs': {'names': ['p12_pa'] * db.xs_m.size + ['q_m3_s'],
+                   'description': 'P12 [Pa] at the 133 spool positions of data_1 (xs_m, m), '
+                                  'then the imposed flow [m^3/s]'},
+        'outputs': {'names': list(OUTPUT_NAMES), 'units': list(OUTPUT_UNITS)},
+        'normalisation': 'per input and output: z = (x - mid) / half, min-max to [-1, 1] '
+                         'on the training split (data_2: inputs [mid; half], data_3: outputs '
+                         '[mid; half])',
+        'architecture': {'d_in': int(in_norm.shape[1]), 'd_hidden': st['hidden'],
+                         'd_out': 2, 'activation': 'tanh', 'output_activation': 'linear',
+                         'n_weights': int(sum(w.size + b.size for w, b in weights))},
+        'training': {'algorithm': alg, 'settings': st[alg], 'seed': st['seed'],
+                     'database': st['database'],
+                     'database_hash': db.meta['fluid_hash'],
+                     'noise_augmentation': {'copies': st['noise_copies'],
+                                            'level': st['noise_level'], 'model': st['noise']},
+                     'time_s': round(wall, 1), 'threads': threads,
+                     'stop': hist.get('stop'), 'epochs': hist.get('epochs'),
+                     'adam_steps': hist.get('adam_steps'),
+                     'lbfgs_iters': hist.get('lbfgs_iters'),
+                     'split': {'train_maps': len(train), 'val_pairs': val,
+                               'test_pairs': test}},
+        'noise_model': 'relative: P (1 + level n), n ~ N(0, 1) per point',
+        'combine': 'median over the curves of a map; spread: their standard deviation',
+        'fluid_hash': fluid_hash(p),
+    }
+    model = DiagnosticModel(db.xs_m.copy(), in_norm, out_norm, weights, meta)
+    errs = {'clean': wear_errors(model, c_te, q_te, w_te, i_te),
+            'noise_1pct': wear_errors(model, c_te, q_te, w_te, i_te,
+                                      noise_level=0.01, seed=123),
+            'noise_1pct_rms': wear_errors(model, c_te, q_te, w_te, i_te, noise_level=0.01,
+                                          noise='rms', seed=123)}
+    meta['errors'] = errs
+    meta['errors_unit'] = '% of each parameter range (WEAR_RANGES), held-out maps'
+    if verbose:
+        print(json.dumps({'hidden': st['hidden'], 'algorithm': alg, 'wall_s': round(wall, 1),
+                          'stop': hist.get('stop'), 'errors': errs}), flush=True)
+    return model
+
+
+def build_artefact(params: PlantParams | None = None, out_dir: Path | None = None,
+                   threads: int = 2, verbose: bool = False) -> Path:
+    """Train the diagnostic network and save ``diag.npz`` in :func:`models_dir` (or
+    ``out_dir``)."""
+    model = train_diagnostic(params=params, threads=threads, verbose=verbose)
+    ref = train_diagnostic(settings=DIAG_THESIS_SETTINGS, params=params, threads=threads,
+                           verbose=verbose)
+    model.meta['alternatives'] = {'thesis_10_lm': {
+        'architecture': ref.meta['architecture'],
+        'training': {k: v for k, v in ref.meta['training'].items() if k != 'split'},
+        'errors': ref.meta['errors']}}
+    path = (Path(out_dir) if out_dir is not None else models_dir()) / 'diag.npz'
+    save_artefact(path, model.data(), model.meta)
+    _load_cached.cache_clear()
+    return path
+
+
+if __name__ == '__main__':
+    print(build_artefact(verbose=True))

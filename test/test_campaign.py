@@ -1,0 +1,56 @@
+"""The main job and the offline tools on recordings of the real graph."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from eha_ros.recording.mcap_io import McapReader
+from eha_ros.tools.campaign import run_campaign
+from eha_ros.tools.diagnose import diagnose
+
+BIN = Path(sys.executable).parent
+
+
+def test_graph_recording_holds_every_tick_and_diagnoses_nominal_valve(eha_graph, tmp_path):
+    path = tmp_path / 'run.mcap'
+    r = eha_graph(processes=False, scenario='sine_0p1_10pi', duration_s=0.4, record=str(path))
+    counts = {}
+    for msg in McapReader(str(path)):
+        counts[msg.topic] = counts.get(msg.topic, 0) + 1
+    assert counts['/eha/state'] == r.state['tick'].size == 401
+    assert counts['/clock'] >= 401 and counts['/eha/servovalve_command'] >= 400
+    d = diagnose(str(path))
+    assert abs(d['radial_clearance_m'] - 2.5e-6) < 0.5e-6
+    assert abs(d['overlap_m'] - 1.0e-6) < 0.5e-6
+    assert d['level'] == 'OK' and d['samples_used'] > 100
+
+
+def test_diagnose_cli_bad_input(tmp_path, ros_env):
+    bad = tmp_path / 'not.mcap'
+    bad.write_text('hello')
+    out = subprocess.run([str(BIN / 'eha-diagnose'), str(bad)], capture_output=True, text=True,
+                         cwd=tmp_path, env=ros_env)
+    assert out.returncode == 2 and out.stderr.count('\n') == 1 and 'not.mcap' in out.stderr
+    out = subprocess.run([str(BIN / 'eha-diagnose'), str(tmp_path / 'missing.mcap')],
+                         capture_output=True, text=True, cwd=tmp_path, env=ros_env)
+    assert out.returncode == 2 and 'missing.mcap' in out.stderr
+
+
+def test_campaign_runs_records_compares_and_reports(tmp_path, ros_env, monkeypatch):
+    for k, v in ros_env.items():
+        monkeypatch.setenv(k, v)
+    out = tmp_path / 'campaign'
+    s = run_campaign(out, scenarios=['step_0p1'], models=['hf', 'ga', 'nn', 'lut'],
+                     progress=lambda line: None)
+    assert (out / 'report.md').is_file() and (out / 'step_0p1' / 'p12.png').is_file()
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['models'][0] == 'hf'
+    for model in summary['models'][1:]:
+        err = summary['relative_error_vs_hf']['step_0p1'][model]
+        assert 0 < err['jack_position_m'] < 1.0  # a surrogate loop that tracks the command
+    assert set(summary['models']) == {'hf', 'ga', 'nn', 'lut'}
+    with pytest.raises(FileExistsError):
+        run_campaign(out, scenarios=['step_0p1'], models=['hf'])
