@@ -335,7 +335,7 @@ def torch_from_data(data):
     model = make_torch_mlp(d_in=u['sizes'][0], d_hidden=u['sizes'][1:-1], d_out=u['sizes'][-1])
     with torch.no_grad():
         model.theta.copy_(torch.as_tensor(np.asarray(data[3], dtype=float)))
-    return model
+    return model.eval()
 
 
 # --- training --------------------------------------------------------------------------------
@@ -343,6 +343,7 @@ def torch_from_data(data):
 def _mse(model, x, y, w=None):
     """(Weighted) mean squared error; ``w`` one weight per row of ``x``."""
     torch = _torch()
+    model.eval()
     with torch.no_grad():
         r2 = (model(x) - y) ** 2
         return float(torch.mean(r2 if w is None else r2 * w[:, None]))

@@ -1,0 +1,216 @@
+"""Neural-network surrogates and the wear diagnosis: the exported kernel against numpy and
+torch, the training algorithms on small problems, the shipped artefacts on freshly generated
+maps, the parameter check and the torch-free import."""
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from eha_ros.physics import default_params
+from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
+from eha_ros.physics.params import replace
+from eha_ros.surrogates import diagnostics, nn
+from eha_ros.surrogates.base import FluidSurrogate, SurrogateError, load_surrogate
+
+RNG = np.random.default_rng(20240611)
+
+
+def _random_inputs(n, rng):
+    p = default_params()
+    return np.stack([rng.uniform(-p.spool_stroke_m, p.spool_stroke_m, n),
+                     rng.uniform(-6e-5, 6e-5, n),
+                     rng.uniform(*WEAR_RANGES['overlap_m'], n),
+                     rng.uniform(*WEAR_RANGES['radial_clearance_m'], n)], axis=1)
+
+
+def _random_packed(sizes, sources, transforms, rng, seed=0):
+    """A packed MLP with random weights and a normalisation fitted on random inputs."""
+    torch = pytest.importorskip('torch')
+    raw = _random_inputs(500, rng)
+    scales = [default_params().spool_stroke_m / math.sinh(4.0), None, None, None]
+    inputs = nn.fit_inputs(raw, sources, transforms, [scales[s] for s in sources])
+    model = nn.make_torch_mlp(d_in=sizes[0], d_hidden=sizes[1:-1], seed=seed)
+    with torch.no_grad():  # non-zero biases too
+        model.theta.add_(0.3 * torch.randn(model.theta.shape, dtype=torch.float64,
+                                           generator=torch.Generator().manual_seed(seed)))
+    return nn.pack(model.sizes, inputs, np.array([2e6, 1.3e8]), model.theta.detach().numpy()), \
+        model, inputs
+
+
+@pytest.mark.parametrize('sizes,sources,transforms', [
+    ([4, 21, 15, 3, 1], [0, 1, 2, 3], ['asinh', 'linear', 'linear', 'linear']),
+    ([4, 21, 15, 3, 1], [0, 1, 2, 3], ['linear'] * 4),
+    ([2, 32, 32, 1], [0, 1], ['linear', 'linear']),
+])
+def test_kernel_matches_numpy_and_torch(sizes, sources, transforms):
+    torch = pytest.importorskip('torch')
+    data, model, inputs = _random_packed(sizes, sources, transforms, RNG)
+    raw = _random_inputs(2000, RNG)
+    s = FluidSurrogate('t', nn.mlp_kernel, data, {'kind': 'mlp'})
+    got = s.p12(*raw.T)
+    ref = nn.mlp_numpy(data, *raw.T)
+    scale = np.max(np.abs(ref))
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12 * scale)
+    with torch.no_grad():
+        model.eval()
+        y = model(torch.as_tensor(nn._transform_inputs(inputs, raw)))[:, 0].numpy()
+    np.testing.assert_allclose(got, 2e6 + 1.3e8 * y, rtol=1e-6, atol=1e-6 * scale)
+    # a 2-input network ignores the wear arguments
+    if len(sources) == 2:
+        np.testing.assert_array_equal(s.p12(raw[:, 0], raw[:, 1], 0.0, 1e-6), got)
+
+
+def test_jacobian_by_hand_matches_autograd():
+    torch = pytest.importorskip('torch')
+    from torch.func import jacrev, vmap
+    for d_out in (1, 2):
+        model = nn.make_torch_mlp(d_in=3, d_hidden=[5, 4], d_out=d_out, seed=1)
+        x = torch.randn(7, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
+        theta = model.theta.detach()
+        ref = vmap(jacrev(lambda th, xi: model(xi[None], th)[0]), in_dims=(None, 0))(theta, x)
+        np.testing.assert_allclose(model.jacobian(x).numpy(),
+                                   ref.reshape(7 * d_out, -1).numpy(), rtol=1e-12, atol=1e-13)
+
+
+def _tiny_problem():
+    torch = pytest.importorskip('torch')
+    x = torch.linspace(-1.0, 1.0, 200, dtype=torch.float64)[:, None]
+    y = 0.8 * torch.sin(2.5 * x) * torch.exp(-x ** 2)
+    return x, y
+
+
+def test_lm_fits_small_regression_and_beats_gradient_descent():
+    torch = pytest.importorskip('torch')
+    x, y = _tiny_problem()
+    lm = nn.make_torch_mlp(d_in=1, d_hidden=[6], seed=0)
+    start = nn._mse(lm, x, y)
+    hist = nn.train_lm(lm, x, y, epochs=60, threads=1)
+    loss_lm = nn._mse(lm, x, y)
+    assert hist['epochs'] == 60 or hist['stop'] in ('mu_max', 'min_grad')
+    assert loss_lm < 1e-6 * start
+    gd = nn.make_torch_mlp(d_in=1, d_hidden=[6], seed=0)
+    opt = torch.optim.SGD(gd.parameters(), lr=0.2)
+    for _ in range(600):  # ten times LM's epochs
+        opt.zero_grad()
+        loss = torch.mean((gd(x) - y) ** 2)
+        loss.backward()
+        opt.step()
+    loss_gd = nn._mse(gd, x, y)
+    assert loss_lm < 1e-3 * loss_gd
+
+
+@pytest.mark.parametrize('algorithm', ['lm', 'adam_lbfgs'])
+def test_training_is_reproducible(algorithm):
+    pytest.importorskip('torch')
+    x, y = _tiny_problem()
+    thetas = []
+    for _ in range(2):
+        model = nn.make_torch_mlp(d_in=1, d_hidden=[4, 3], seed=7)
+        if algorithm == 'lm':
+            nn.train_lm(model, x, y, x_val=x[::3], y_val=y[::3], epochs=20, subsample=64,
+                        resample_every=5, seed=7, threads=1)
+        else:
+            nn.train_adam_lbfgs(model, x, y, x_val=x[::3], y_val=y[::3], adam_steps=50,
+                                batch=32, lbfgs_iters=20, val_every=10, seed=7, threads=1)
+        thetas.append(model.theta.detach().numpy().copy())
+    np.testing.assert_array_equal(thetas[0], thetas[1])
+
+
+# --- shipped artefacts ----------------------------------------------------------------------
+
+@pytest.fixture(scope='module')
+def fresh_maps():
+    """Three maps at random wear inside the ranges, on the database grid (DB2 flows)."""
+    return nn.offgrid_maps(3, q_max_m3_s=6e-5, n_q=15, seed=777)
+
+
+@pytest.mark.parametrize('name', ['nn', 'nn2'])
+def test_shipped_kernel_matches_numpy(name):
+    s = load_surrogate(name)
+    raw = _random_inputs(3000, RNG)
+    ref = nn.mlp_numpy(s.data, *raw.T)
+    np.testing.assert_allclose(s.p12(*raw.T), ref, rtol=1e-12,
+                               atol=1e-12 * np.max(np.abs(ref)))
+    assert s.meta['fluid_hash'] and s.meta['training']['algorithm'] in ('lm', 'adam_lbfgs')
+
+
+#: Bounds on the relative error in Euclidean norm of a fresh map (the reference reached
+#: 1-5 %; the shipped networks' held-out errors are about 0.2 % over DB2's flows, 0.6 % over
+#: DB3's narrow flows and 0.15 % for the 2-input network).
+NN_MAP_BOUND = 0.005
+NN_MAP_BOUND_NARROW_FLOWS = 0.012
+NN2_MAP_BOUND = 0.005
+
+
+@pytest.mark.parametrize('q_max,bound', [(6e-5, NN_MAP_BOUND),
+                                         (1.5e-5, NN_MAP_BOUND_NARROW_FLOWS)])
+def test_shipped_nn_on_fresh_maps(fresh_maps, q_max, bound):
+    s = load_surrogate('nn')
+    maps = fresh_maps if q_max == 6e-5 else nn.offgrid_maps(3, q_max_m3_s=q_max, n_q=15,
+                                                            seed=777)
+    for xs, q, lap, clr, p12 in maps:
+        pred = s.p12(xs[:, None], q[None, :], lap, clr)
+        assert np.linalg.norm(pred - p12) / np.linalg.norm(p12) < bound
+
+
+def test_shipped_nn2_on_fresh_nominal_map():
+    p = default_params()
+    s = load_surrogate('nn2')
+    xs = spool_grid(133, p.spool_stroke_m)
+    # flows between the database's (DB5: 133 flows over +-6e-5)
+    q = np.linspace(-6e-5, 6e-5, 133)
+    q = 0.5 * (q[1:] + q[:-1])[::9]
+    p12 = transient_map(xs[:, None], q[None, :], params=p)['p12_pa']
+    pred = s.p12(xs[:, None], q[None, :], 5e-6, 5e-6)   # wear arguments are ignored
+    assert np.linalg.norm(pred - p12) / np.linalg.norm(p12) < NN2_MAP_BOUND
+
+
+#: Bounds on the per-map wear error (median of the map's curves), % of each parameter's range
+#: (held-out maps of DB4: about 0.07 % on average, 0.4 % at worst; 0.3 % and 1 % with 1 %
+#: noise).
+DIAG_BOUND_CLEAN = 0.5
+DIAG_BOUND_NOISY = 1.0
+
+
+@pytest.mark.parametrize('noise', [0.0, 0.01])
+def test_shipped_diag_recovers_wear(fresh_maps, noise):
+    rng = np.random.default_rng(5)
+    ranges = np.array([np.diff(WEAR_RANGES['radial_clearance_m'])[0],
+                       np.diff(WEAR_RANGES['overlap_m'])[0]])
+    bound = DIAG_BOUND_NOISY if noise else DIAG_BOUND_CLEAN
+    for xs, q, lap, clr, p12 in fresh_maps:
+        curves = diagnostics.add_noise(p12.T, noise, rng).T if noise else p12
+        est = diagnostics.estimate_wear_map(curves, q)
+        err = np.abs([est.radial_clearance_m - clr, est.overlap_m - lap]) / ranges * 100
+        assert np.all(err < bound), (lap, clr, est)
+        assert est.curves_used == q.size and est.radial_clearance_std_m >= 0.0
+        c1, o1 = diagnostics.estimate_wear(curves[:, 3], q[3])
+        assert c1 == pytest.approx(est.per_curve_clearance_m[3], rel=1e-12)
+        assert o1 == pytest.approx(est.per_curve_overlap_m[3], rel=1e-12, abs=1e-18)
+
+
+def test_diag_rejects_wrong_curve_length():
+    with pytest.raises(ValueError, match='spool grid'):
+        diagnostics.estimate_wear(np.zeros(100), 0.0)
+
+
+def test_other_fluid_parameters_are_refused():
+    other = replace(default_params(), supply_pressure_pa=default_params().supply_pressure_pa * 1.1)
+    for name in ('nn', 'nn2'):
+        with pytest.raises(SurrogateError, match='fluid parameters'):
+            load_surrogate(name, params=other)
+    with pytest.raises(SurrogateError, match='fluid parameters'):
+        diagnostics.load_diagnostic(params=other)
+
+
+def test_inference_modules_do_not_import_torch():
+    code = ('import sys, numpy as np\n'
+            'import eha_ros.surrogates.nn, eha_ros.surrogates.diagnostics as d\n'
+            'from eha_ros.surrogates.base import load_surrogate\n'
+            "s = load_surrogate('nn'); s.p12(0.0, 1e-5, 0.0, 3e-6)\n"
+            'd.estimate_wear(np.zeros(133), 0.0)\n'
+            "assert 'torch' not in sys.modules, 'torch imported'\n")
+    subprocess.run([sys.executable, '-c', code], check=True)
