@@ -76,6 +76,11 @@ class GraphConfig:
         """``node -> {parameter: value}``."""
         sim = self.mode == 'lockstep'
         common = {'mode': self.mode, 'rate_hz': float(self.rate_hz)}
+        from eha_ros.physics import get_scenario
+        sc = get_scenario(self.scenario)
+        test = ({'valve_test': True,
+                 'valve_test_flows_m3_s': [float(q) for q in sc.valve_test_flows_m3_s]}
+                if sc.valve_test else {})
         out = {
             'command_generator': dict(common, scenario=self.scenario, use_sim_time=sim),
             'controller': dict(common, params_file=self.params_file, use_sim_time=sim),
@@ -84,7 +89,7 @@ class GraphConfig:
                                      duration_s=self.resolved_duration(),
                                      start_subscribers=(2 + int(self.health) + self.recorders
                                                         + int(bool(self.record))),
-                                     **self.plant),
+                                     **dict(test, **self.plant)),
         }
         if self.health:
             out['health_monitor'] = dict(params_file=self.params_file, use_sim_time=sim,
@@ -120,6 +125,8 @@ def _ros_arg(value) -> str:
         return 'true' if value else 'false'
     if isinstance(value, str):
         return value if value else "''"
+    if isinstance(value, (list, tuple)):
+        return '[' + ', '.join(f'{float(v):.17e}' for v in value) + ']'
     return repr(value)
 
 
@@ -192,6 +199,10 @@ class _Collector:
         state['stamp_ns'] = stamps(self.states)
         state['tick'] = np.array([m.tick for m in self.states], dtype=np.int64)
         state['status'] = np.array([m.status for m in self.states], dtype=np.int64)
+        state['valve_test_point'] = np.array([m.valve_test_point for m in self.states],
+                                             dtype=np.int64)
+        state['valve_test_point_end'] = np.array([m.valve_test_point_end for m in self.states],
+                                                 dtype=bool)
         state['arrival_s'] = np.array(self.state_arrival)
         command = {'stamp_ns': stamps(self.commands),
                    'position_setpoint_m': np.array([m.position_setpoint_m

@@ -31,9 +31,12 @@ def _run_node(name, *ros_args, env, timeout=30):
     ('controller', 'mode:=sometimes', ['mode']),
     ('command_generator', 'scenario:=no_such', ['scenario', 'no_such']),
     ('health_monitor', 'thresholds_file:=/nonexistent.yaml', ['nonexistent.yaml']),
+    ('servovalve_plant', ('valve_test:=true', 'rate_hz:=1250.0'),
+     ['valve test', 'whole number of ticks']),
 ])
 def test_bad_parameter_refused_at_start(ros_env, node, arg, words):
-    out = _run_node(node, '-p', arg, env=ros_env)
+    args = [a for one in ((arg,) if isinstance(arg, str) else arg) for a in ('-p', one)]
+    out = _run_node(node, *args, env=ros_env)
     assert out.returncode == 2, out.stderr
     last = out.stderr.strip().splitlines()[-1]
     assert last.startswith(f'{node}: error:')

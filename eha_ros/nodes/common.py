@@ -77,6 +77,10 @@ def declare(node: Node, name: str, default, description: str, lo=None, hi=None,
                                                             to_value=float(hi), step=0.0)]
     elif isinstance(default, str):
         desc.type = ParameterType.PARAMETER_STRING
+    elif isinstance(default, (list, tuple)) and default and all(
+            isinstance(v, float) for v in default):
+        desc.type = ParameterType.PARAMETER_DOUBLE_ARRAY
+        default = [float(v) for v in default]
     return node.declare_parameter(name, default, desc).value
 
 

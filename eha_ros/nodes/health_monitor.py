@@ -5,18 +5,29 @@ Every ``update_period_s`` of state time it fits the valve model to the (XS, Q, P
 the last ``window_s`` (:class:`eha_ros.surrogates.health.InServiceEstimator`, method
 ``steady-fit``, or ``surrogate-fit`` with ``model`` naming a shipped 4-input surrogate) and
 grades the estimate with the thresholds of ``config/health.yaml``.
+
+During a diagnostic valve test (states with ``STATUS_VALVE_TEST``, see
+:mod:`eha_ros.physics.valve_test`) it collects P12 at the end of every point's hold instead;
+each time a curve (133 spool positions at one flow) is complete it publishes the wear the
+diagnostic network reads from the curves of the test so far (method ``diagnostic-network``,
+:class:`eha_ros.surrogates.health.ValveTestEstimator`).  The in-service window ignores test
+samples.
 """
 
 from __future__ import annotations
 
 from collections import deque
 
+import numpy as np
+
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 
 from eha_ros.msg import ActuatorState, HealthStatus
 from eha_ros.physics import ParameterError, load_params
-from eha_ros.surrogates.health import HealthThresholds, InServiceEstimator, classify
+from eha_ros.surrogates.base import SurrogateError
+from eha_ros.surrogates.health import (HealthThresholds, InServiceEstimator, ValveTestEstimator,
+                                       classify)
 
 from .common import (TOPIC_DIAGNOSTICS, TOPIC_HEALTH, TOPIC_STATE, advertise, declare,
                      run_node, stamp_to_ns, subscribe, validator)
@@ -48,6 +59,15 @@ class HealthMonitor(Node):
             from eha_ros.surrogates.base import load_surrogate
             model = load_surrogate(self.model_name, self.params).p12
         self.estimator = InServiceEstimator(self.params, model=model)
+        try:
+            self.test_estimator = ValveTestEstimator(self.params)
+            self.test_error = ''
+        except (SurrogateError, OSError) as exc:  # in-service estimation still works
+            self.test_estimator = None
+            self.test_error = ' '.join(str(exc).split())
+        self.curves = {}          # flow -> {point: (xs, p12)} of the running valve test
+        self.curves_done = []     # (q, xs, p12) of its complete curves
+        self.in_test = False
         self.add_on_set_parameters_callback(validator(self._on_set))
         self.health_pub = advertise(self, HealthStatus, TOPIC_HEALTH)
         self.diag_pub = advertise(self, DiagnosticArray, TOPIC_DIAGNOSTICS)
@@ -68,6 +88,12 @@ class HealthMonitor(Node):
 
     def _on_state(self, msg: ActuatorState):
         t_ns = stamp_to_ns(msg.header.stamp)
+        if msg.status == ActuatorState.STATUS_VALVE_TEST:
+            self._on_valve_test(msg)
+            return
+        if self.in_test:  # the test is over: the in-service window starts afresh
+            self.in_test = False
+            self.next_ns = None
         if msg.status == ActuatorState.STATUS_DIVERGED or msg.sim_time_s < self.settle_s:
             return
         self.samples.append((t_ns, msg.spool_position_m, msg.load_flow_m3_s, msg.p12_pa))
@@ -79,17 +105,46 @@ class HealthMonitor(Node):
             self.next_ns = t_ns + int(self.update_s * 1e9)
             self.publish_estimate(msg.header.stamp)
 
-    def publish_estimate(self, stamp):
-        """Estimate from the buffered samples and publish HealthStatus and /diagnostics."""
+    def _on_valve_test(self, msg: ActuatorState):
+        if not self.in_test:
+            self.in_test = True
+            self.curves, self.curves_done = {}, []
+            self.samples.clear()
+        if not msg.valve_test_point_end:
+            return
+        q = msg.load_flow_m3_s
+        curve = self.curves.setdefault(q, {})
+        curve[msg.valve_test_point] = (msg.spool_position_m, msg.p12_pa)
+        n = (self.test_estimator.model.xs_m.size if self.test_estimator is not None else 133)
+        if msg.valve_test_point != n - 1:
+            return
+        if len(curve) < n:  # points lost (realtime): the network needs the whole curve
+            self.get_logger().warning(f'valve test curve at q = {q:g} m^3/s has {len(curve)} of '
+                                      f'{n} points: not used')
+            return
+        pts = [curve[k] for k in sorted(curve)]
+        self.curves_done.append((q, np.array([x for x, _ in pts]),
+                                 np.array([p for _, p in pts])))
+        self.publish_estimate(msg.header.stamp, valve_test=True)
+
+    def publish_estimate(self, stamp, valve_test: bool = False):
+        """Estimate from the buffered samples (or the valve test's curves) and publish
+        HealthStatus and /diagnostics."""
         _, xs, q, p12 = zip(*self.samples) if self.samples else ((), (), (), ())
         out = HealthStatus()
         out.header.stamp = stamp
         out.header.frame_id = 'servovalve'
+        estimator = self.test_estimator if valve_test else self.estimator
         try:
-            est = self.estimator.estimate(xs, q, p12)
-        except ParameterError as exc:
+            if not valve_test:
+                est = self.estimator.estimate(xs, q, p12)
+            elif estimator is None:
+                raise ParameterError(f'the diagnostic network is not usable: {self.test_error}')
+            else:
+                est = estimator.estimate(self.curves_done)
+        except ValueError as exc:  # ParameterError included
             out.level = HealthStatus.LEVEL_ERROR
-            out.method = self.estimator.method
+            out.method = ValveTestEstimator.method if valve_test else self.estimator.method
             out.message = f'no estimate: {exc}'
         else:
             level, text = classify(est, self.limits)

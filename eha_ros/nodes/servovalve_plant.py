@@ -11,6 +11,11 @@ it publishes ``/clock`` and the state of tick k, and advances to tick k+1 only w
 ``ServovalveCommand`` stamped with tick k arrives; if none comes within ``resend_s`` of wall
 time it publishes tick k again.
 
+Valve test (``valve_test: true``): before operating, the plant runs the diagnostic valve test of
+:mod:`eha_ros.physics.valve_test` - the reference's map sweep at ``valve_test_flows_m3_s``, one
+tick at a time, the jack clamped - and reports it with status ``STATUS_VALVE_TEST``; the health
+monitor reads the wear from those curves.
+
 Wear and degradation (overlap, clearance, eccentricity, Khsv, KGM, K_intas, backlash, friction,
 hysteresis, offset, leakage) are parameters that can change while running; a non-physical value
 is refused with the reason.
@@ -27,11 +32,15 @@ from eha_ros.msg import ActuatorState, ServovalveCommand
 from eha_ros.physics import ParameterError, Plant, SimulationDiverged, load_params
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import S_P1, S_P2, S_XJ
+from eha_ros.physics.valve_test import ValveTest
 
 from .common import (MODES, TOPIC_CLOCK, TOPIC_SERVOVALVE, TOPIC_STATE, advertise, declare,
                      declare_physics, ns_to_stamp, run_node, stamp_to_ns, subscribe, validator)
 
 MODELS = ('hf', 'lut', 'ga', 'nn', 'nn2')
+
+#: Flows [m^3/s] of the valve test by default: three of the diagnostic grid (DB4).
+DEFAULT_TEST_FLOWS_M3_S = (2.5714285714285714e-05, 4.285714285714286e-05, 6.0e-05)
 
 #: Parameters that may change during a run (progressive degradation).
 WEAR = ('overlap_supply_m', 'overlap_return_m', 'radial_clearance_m', 'eccentricity_ratio',
@@ -72,6 +81,10 @@ class ServovalvePlant(Node):
         self.start_subscribers = declare(self, 'start_subscribers', 1, 'lockstep: state '
                                          'subscribers to wait for before the first tick (the '
                                          'controller, plus recorders)', 1, 100)
+        valve_test = declare(self, 'valve_test', False, 'run the diagnostic valve test (map '
+                             'sweep, jack clamped) before operating')
+        flows = declare(self, 'valve_test_flows_m3_s', list(DEFAULT_TEST_FLOWS_M3_S),
+                        'valve test: imposed load flows [m^3/s], one P12 curve each')
         if self.mode not in MODES:
             raise ParameterError(f'mode {self.mode!r} must be one of {", ".join(MODES)}')
         params = replace(base, **{n: self.get_parameter(n).value for n in WEAR})
@@ -84,6 +97,11 @@ class ServovalvePlant(Node):
                                  f'dt_s = {dt_s:g} s')
         self.period_ns = period_ns
         self.steps_per_tick = period_ns // self.plant.dt_ns
+        self.valve_test = ValveTest(flows, period_ns, dt_s) if valve_test else None
+        self.test_tick = 0
+        self.test_sample = None
+        if self.valve_test is not None:
+            self.valve_test.sample(1, params)  # JIT first
         self.add_on_set_parameters_callback(validator(self._on_set))
         self.state_pub = advertise(self, ActuatorState, TOPIC_STATE)
         subscribe(self, ServovalveCommand, TOPIC_SERVOVALVE, self._on_command)
@@ -104,7 +122,8 @@ class ServovalvePlant(Node):
 
     # parameters --------------------------------------------------------------------------
     def _on_set(self, changes):
-        frozen = {'model', 'dt_s', 'rate_hz', 'mode', 'seed', 'params_file'} & set(changes)
+        frozen = {'model', 'dt_s', 'rate_hz', 'mode', 'seed', 'params_file', 'valve_test',
+                  'valve_test_flows_m3_s'} & set(changes)
         if frozen:
             raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
         wear = {k: v for k, v in changes.items() if k in WEAR}
@@ -125,8 +144,14 @@ class ServovalvePlant(Node):
         if self.done or self.diverged:
             return False
         try:
-            self.plant.advance(self.current_a, self.steps_per_tick)
-        except SimulationDiverged as exc:
+            if self.valve_test is not None and self.test_tick < self.valve_test.n_ticks:
+                self.test_tick += 1
+                self.test_sample = self.valve_test.sample(self.test_tick, self.plant.params)
+                self.plant.hold(self.steps_per_tick)
+            else:
+                self.test_sample = None
+                self.plant.advance(self.current_a, self.steps_per_tick)
+        except (SimulationDiverged, FloatingPointError) as exc:
             self.diverged = True
             self.get_logger().error(str(exc))
             return True
@@ -157,8 +182,20 @@ class ServovalvePlant(Node):
         msg.tick = self.plant.steps
         msg.model = self.model
         st = self.plant.state
+        t = self.test_sample
+        if t is not None:
+            msg.spool_position_m = t.spool_position_m
+            msg.load_flow_m3_s = t.load_flow_m3_s
+            msg.p1_pa = t.p1_pa
+            msg.p2_pa = t.p2_pa
+            msg.p12_pa = t.p1_pa - t.p2_pa
+            msg.jack_velocity_m_s = 0.0
+            msg.valve_test_point = t.point
+            msg.valve_test_point_end = t.point_end
         if self.diverged:
             msg.status = ActuatorState.STATUS_DIVERGED
+        elif t is not None:
+            msg.status = ActuatorState.STATUS_VALVE_TEST
         elif abs(st[S_XJ]) >= p.jack_stroke_m:
             msg.status = ActuatorState.STATUS_END_STOP
         elif min(st[S_P1], st[S_P2]) <= p.vapour_pressure_pa:

@@ -80,6 +80,7 @@ class Scenario:
     sweep_time_s: float = 0.0
     com_times_s: tuple = ()
     com_values_m: tuple = ()
+    valve_test_flows_m3_s: tuple = ()
     description: str = ''
 
     def __post_init__(self):
@@ -113,6 +114,14 @@ class Scenario:
             if np.any(np.diff(t) <= 0) or not np.all(np.isfinite(t)) or not np.all(
                     np.isfinite(v)):
                 raise ParameterError(f'{where}: com_times_s must be finite and increasing')
+        if not np.all(np.isfinite(np.asarray(self.valve_test_flows_m3_s, dtype=float))):
+            raise ParameterError(f'{where}: valve_test_flows_m3_s must be finite')
+
+    @property
+    def valve_test(self) -> bool:
+        """The plant runs the diagnostic valve test (:mod:`.valve_test`) first, at these
+        flows; the command (the jack held) applies after it."""
+        return len(self.valve_test_flows_m3_s) > 0
 
     def arrays(self):
         """(kind, args, com_t, com_v) as :func:`command_value` takes them."""
@@ -142,6 +151,7 @@ def command_series(scenario: Scenario, t_s: np.ndarray) -> np.ndarray:
 
 
 _FIELDS = {f.name for f in dataclasses.fields(Scenario)} - {'name'}
+_TUPLES = ('com_times_s', 'com_values_m', 'valve_test_flows_m3_s')
 
 
 def load_scenarios(path: Path | str | None = None) -> dict[str, Scenario]:
@@ -159,11 +169,15 @@ def load_scenarios(path: Path | str | None = None) -> dict[str, Scenario]:
         if unknown:
             raise ParameterError(f'{path}: scenario {name}: unknown field {unknown[0]}')
         kw = dict(entry)
-        for key in ('com_times_s', 'com_values_m'):
+        for key in _TUPLES:
             if key in kw:
-                kw[key] = tuple(float(x) for x in kw[key])
+                try:
+                    kw[key] = tuple(float(x) for x in kw[key])
+                except (TypeError, ValueError):
+                    raise ParameterError(f'{path}: scenario {name}: {key} must be a list of '
+                                         'numbers') from None
         for key, value in list(kw.items()):
-            if key not in ('waveform', 'description', 'com_times_s', 'com_values_m'):
+            if key not in ('waveform', 'description') + _TUPLES:
                 try:
                     kw[key] = float(value)
                 except (TypeError, ValueError):

@@ -461,6 +461,13 @@ class Plant:
         if status:
             raise _diverged(status, self.time_s)
 
+    def hold(self, n_steps: int) -> None:
+        """Advance the clock ``n_steps`` steps with the actuator frozen (a valve test: the jack
+        clamped, the valve on its test circuit, see :mod:`.valve_test`)."""
+        if n_steps < 0:
+            raise ValueError('n_steps must not be negative')
+        self.steps += int(n_steps)
+
     def measured_position_m(self) -> float:
         return float(quantise(self.state[S_SURF], self.params.sensor_resolution_m))
 

@@ -28,8 +28,8 @@ from eha_ros.physics import PlantParams, default_params
 from eha_ros.physics.maps import WEAR_RANGES, steady_map
 from eha_ros.physics.params import ParameterError, read_yaml
 
-__all__ = ['HealthEstimate', 'InServiceEstimator', 'HealthThresholds', 'classify', 'OK', 'WARN',
-           'ERROR']
+__all__ = ['HealthEstimate', 'InServiceEstimator', 'ValveTestEstimator', 'HealthThresholds',
+           'classify', 'OK', 'WARN', 'ERROR']
 
 OK, WARN, ERROR = 0, 1, 2
 
@@ -143,6 +143,62 @@ class InServiceEstimator:
                               overlap_m=float(x[0] * 1e-6), overlap_std_m=float(std[0]),
                               pressure_residual_pa=float(np.sqrt(cost / xs.size) * scale),
                               samples_used=int(xs.size), method=self.method)
+
+
+class ValveTestEstimator:
+    """Wear from the P12 curves of a diagnostic valve test (:mod:`eha_ros.physics.valve_test`)
+    by the diagnostic network (:mod:`.diagnostics`), method ``diagnostic-network``.
+
+    One estimate per curve; the wear is their median and the uncertainty their standard
+    deviation (zero with one curve).  The residual is the RMS difference between the measured
+    curves and the map model at the estimated wear: it tells whether the network's answer
+    explains the data (a curve outside what the network was trained on does not).
+
+    Parameters
+    ----------
+    params : PlantParams
+        Physics of the valve: the network must have been built for its fluid parameters.
+    model : DiagnosticModel, optional
+        Default: the shipped network, checked against ``params``.
+    """
+
+    method = 'diagnostic-network'
+
+    def __init__(self, params: PlantParams | None = None, model=None):
+        from .diagnostics import load_diagnostic
+        self.params = params if params is not None else default_params()
+        self.model = model if model is not None else load_diagnostic(self.params)
+
+    def estimate(self, curves) -> HealthEstimate:
+        """``curves``: ``(q_m3_s, xs_m, p12_pa)`` per flow, the spool positions [m] in
+        increasing order (resampled onto the network's grid if they are not it)."""
+        from eha_ros.physics.maps import transient_map
+        from eha_ros.physics.params import replace
+
+        from .diagnostics import estimate_wear
+        curves = [(float(q), np.asarray(xs, dtype=float), np.asarray(p, dtype=float))
+                  for q, xs, p in curves]
+        if not curves:
+            raise ParameterError('no complete valve-test curve')
+        grid = self.model.xs_m
+        est = [estimate_wear(p, q, model=self.model, xs_m=None if np.array_equal(xs, grid)
+                             else xs) for q, xs, p in curves]
+        c = np.array([e[0] for e in est])
+        o = np.array([e[1] for e in est])
+        clr, lap = float(np.median(c)), float(np.median(o))
+        lo, hi = WEAR_RANGES['radial_clearance_m']
+        model_params = replace(self.params, radial_clearance_m=float(np.clip(clr, lo * 0.5,
+                                                                              hi * 2)),
+                               overlap_supply_m=lap, overlap_return_m=lap)
+        r2, n = 0.0, 0
+        for q, xs, p in curves:
+            pred = transient_map(xs, q, params=model_params)['p12_pa']
+            r2 += float(np.sum((pred - p) ** 2))
+            n += p.size
+        return HealthEstimate(radial_clearance_m=clr, radial_clearance_std_m=float(np.std(c)),
+                              overlap_m=lap, overlap_std_m=float(np.std(o)),
+                              pressure_residual_pa=float(np.sqrt(r2 / n)), samples_used=n,
+                              method=self.method)
 
 
 @dataclasses.dataclass(frozen=True)

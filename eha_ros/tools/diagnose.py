@@ -8,6 +8,11 @@ the last S seconds; ``--skip S`` drops the first S seconds (start-up).
 
 Bad input (missing, truncated, corrupt or non-MCAP file, no ``/eha/state`` topic, too few
 samples) ends with one line on stderr and exit status 2.
+
+A recording of a diagnostic valve test (states with ``STATUS_VALVE_TEST``) is read as the health
+monitor reads it: the P12 curves at the point ends go to the diagnostic network
+(:class:`eha_ros.surrogates.health.ValveTestEstimator`, method ``diagnostic-network``);
+``--method steady`` fits the in-service samples instead.
 """
 
 from __future__ import annotations
@@ -16,17 +21,41 @@ import argparse
 import json
 import sys
 
+import numpy as np
 
 from eha_ros.physics import ParameterError, load_params
+from eha_ros.physics.valve_test import MAP_POINTS
 from eha_ros.recording.mcap_io import RecordingError, load_topic_arrays
 from eha_ros.recording.topics import TOPIC_STATE
-from eha_ros.surrogates.health import HealthThresholds, InServiceEstimator, classify
+from eha_ros.surrogates.base import SurrogateError
+from eha_ros.surrogates.health import (HealthThresholds, InServiceEstimator, ValveTestEstimator,
+                                       classify)
+
+STATUS_DIVERGED, STATUS_VALVE_TEST = 3, 4
 
 LEVELS = ('OK', 'WARN', 'ERROR')
 
 
-def diagnose(path, params=None, window_s=None, skip_s=0.05, max_samples=400):
-    """Wear estimate (dict) of the recording at ``path``."""
+def _valve_test_curves(a, keep):
+    """``(q, xs, p12)`` of every complete curve of the valve test in the arrays ``a``."""
+    ends = keep & (a['status'] == STATUS_VALVE_TEST) & a.get(
+        'valve_test_point_end', np.zeros(a['status'].size, dtype=bool))
+    curves = []
+    q_all = a['load_flow_m3_s'][ends]
+    for q in dict.fromkeys(q_all.tolist()):  # in order of appearance
+        sel = q_all == q
+        point = a['valve_test_point'][ends][sel]
+        _, first = np.unique(point, return_index=True)
+        if first.size == MAP_POINTS:
+            curves.append((q, a['spool_position_m'][ends][sel][first],
+                           a['p12_pa'][ends][sel][first]))
+    return curves
+
+
+def diagnose(path, params=None, window_s=None, skip_s=0.05, max_samples=400, method='auto'):
+    """Wear estimate (dict) of the recording at ``path``; ``method``: ``auto`` (the valve
+    test's curves if the recording has one, else the in-service fit), ``network`` or
+    ``steady``."""
     try:
         a = load_topic_arrays(path, TOPIC_STATE, strict=True)
     except KeyError:
@@ -39,14 +68,27 @@ def diagnose(path, params=None, window_s=None, skip_s=0.05, max_samples=400):
     if a['log_time_ns'].size == 0 or any(k not in a for k in needed):
         raise ParameterError(f'{path}: no usable {TOPIC_STATE} samples')
     t = a['stamp_ns'] * 1e-9
-    keep = t >= t.min() + skip_s
-    if window_s:
-        keep &= t >= t.max() - window_s
+    params = params or load_params()
     status = a.get('status')
-    if status is not None:
-        keep &= status != 3
-    est = InServiceEstimator(params or load_params(), max_samples=max_samples).estimate(
-        a['spool_position_m'][keep], a['load_flow_m3_s'][keep], a['p12_pa'][keep])
+    curves = _valve_test_curves(a, np.ones(t.size, dtype=bool)) if status is not None else []
+    if method == 'network' or (method == 'auto' and curves):
+        if not curves:
+            raise ParameterError(f'{path}: no complete valve-test curve (133 points at one '
+                                 'flow) to give the diagnostic network')
+        try:
+            estimator = ValveTestEstimator(params)
+        except (SurrogateError, OSError) as exc:
+            raise ParameterError(' '.join(str(exc).split())) from None
+        keep = (status == STATUS_VALVE_TEST)
+        est = estimator.estimate(curves)
+    else:
+        keep = t >= t.min() + skip_s
+        if window_s:
+            keep &= t >= t.max() - window_s
+        if status is not None:
+            keep &= (status != STATUS_DIVERGED) & (status != STATUS_VALVE_TEST)
+        est = InServiceEstimator(params, max_samples=max_samples).estimate(
+            a['spool_position_m'][keep], a['load_flow_m3_s'][keep], a['p12_pa'][keep])
     level, text = classify(est, HealthThresholds.load())
     models = a.get('model')
     return {'file': str(path), 'model': str(models[0]) if models is not None and models.size
@@ -65,10 +107,14 @@ def main(argv=None) -> int:
     ap.add_argument('--window', type=float, default=None, help='last S seconds only')
     ap.add_argument('--skip', type=float, default=0.05, help='drop the first S seconds')
     ap.add_argument('--params', default=None, help='physical parameter YAML')
+    ap.add_argument('--method', choices=('auto', 'network', 'steady'), default='auto',
+                    help='network: the valve test\'s curves; steady: in-service fit; auto: '
+                    'network if the recording holds a valve test')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
     try:
-        r = diagnose(args.file, load_params(args.params), args.window, args.skip)
+        r = diagnose(args.file, load_params(args.params), args.window, args.skip,
+                     method=args.method)
     except ParameterError as exc:
         print(f'eha-diagnose: error: {exc}', file=sys.stderr)
         return 2
