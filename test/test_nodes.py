@@ -131,6 +131,47 @@ def test_realtime_mode_ticks_at_its_rate(eha_graph):
     assert r.state['jack_position_m'].max() > 0.5e-3
 
 
+def test_realtime_plant_locks_simulated_time_to_the_wall_clock(ros_env):
+    """The realtime plant's catch-up and slip, driven by a wall clock the test sets: a late
+    timer call publishes every tick that fell due, a stall beyond ``max_catch_up`` ticks slips
+    (the backlog dropped and counted), and simulated time then follows the wall clock again."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from eha_ros.msg import ActuatorState
+    from eha_ros.nodes.servovalve_plant import ServovalvePlant
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+    try:
+        node = ServovalvePlant(context=ctx, parameter_overrides=[
+            Parameter('mode', value='realtime'), Parameter('max_catch_up', value=20)])
+        published = []
+        node.state_pub.publish = published.append  # keep what would go out
+        wall = [10_000_000_000]
+        node._now_ns = lambda: wall[0]
+        ms = 1_000_000
+
+        def call(dt_ns):
+            wall[0] += dt_ns
+            n = len(published)
+            node._on_timer()
+            return published[n:]
+
+        assert len(call(0)) == 1                    # the first tick falls due at once
+        assert len(call(ms)) == 1                   # on time: one tick
+        assert len(call(ms // 2)) == 0              # early: nothing due yet
+        late = call(7 * ms + ms // 2)               # 8 ms late: 8 ticks caught up
+        assert len(late) == 8 and node.slipped_ticks == 0
+        assert [m.tick for m in late] == [k * 1000 for k in range(3, 11)]
+        assert len(call(100 * ms)) == 20 and node.slipped_ticks == 80   # a 0.1 s stall
+        assert len(call(ms)) == 1 and len(call(3 * ms)) == 3           # back on the clock
+        assert all(isinstance(m, ActuatorState) for m in published)
+        assert published[-1].sim_time_s == pytest.approx(len(published) * 1e-3)
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
 @pytest.mark.parametrize('model', ['lut', 'ga', 'nn'])
 def test_loop_with_each_surrogate_is_stable_and_matches_its_physics_run(eha_graph, model):
     """The plant with a surrogate fluid block closes the loop: the 0.1 mm step settles within

@@ -6,7 +6,10 @@ edges) or a surrogate shipped in ``eha_ros/surrogates/models`` (``lut``, ``ga``,
 ``nn2``).  Between ticks the plant takes ``1/rate_hz / dt_s`` steps of ``dt_s`` (1 us) with the
 last coil-current command held.
 
-Realtime mode: a wall-clock timer at ``rate_hz``.  Lockstep mode: the plant is the time source:
+Realtime mode: a wall-clock timer at ``rate_hz``; simulated time is locked to the wall clock:
+when a timer call comes late (a busy machine) the plant catches up the ticks that fell due, up
+to ``max_catch_up`` at once; a longer stall is a slip - the backlog beyond that is dropped, the
+simulation resumes from where it was, and the slip is counted and logged.  Lockstep mode: the plant is the time source:
 it publishes ``/clock`` and the state of tick k, and advances to tick k+1 only when the
 ``ServovalveCommand`` stamped with tick k arrives; if none comes within ``resend_s`` of wall
 time it publishes tick k again.
@@ -85,6 +88,8 @@ class ServovalvePlant(Node):
                              'sweep, jack clamped) before operating')
         flows = declare(self, 'valve_test_flows_m3_s', list(DEFAULT_TEST_FLOWS_M3_S),
                         'valve test: imposed load flows [m^3/s], one P12 curve each')
+        self.max_catch_up = declare(self, 'max_catch_up', 50, 'realtime: most late ticks '
+                                    'caught up at once; a longer stall slips', 1, 100000)
         if self.mode not in MODES:
             raise ParameterError(f'mode {self.mode!r} must be one of {", ".join(MODES)}')
         params = replace(base, **{n: self.get_parameter(n).value for n in WEAR})
@@ -116,6 +121,10 @@ class ServovalvePlant(Node):
             self._last_pub_ns = 0
             self._watchdog = self.create_timer(0.01, self._on_watchdog, clock=steady)
         else:
+            self._steady = steady
+            self._t0_ns = None
+            self._rt_ticks = 0
+            self.slipped_ticks = 0
             self.create_timer(period_ns * 1e-9, self._on_timer, clock=steady)
         self.get_logger().info(f'model {self.model}, dt {dt_s:g} s, {self.steps_per_tick} '
                                f'steps per tick, {self.mode}')
@@ -136,6 +145,8 @@ class ServovalvePlant(Node):
                 f'{k}={v:g}' for k, v in wear.items()))
         if 'duration_s' in changes:
             self.duration_s = float(changes['duration_s'])
+        if 'max_catch_up' in changes:
+            self.max_catch_up = int(changes['max_catch_up'])
         if 'resend_s' in changes:
             self.resend_s = float(changes['resend_s'])
 
@@ -213,8 +224,27 @@ class ServovalvePlant(Node):
         self._last_pub_ns = RosClock(clock_type=ClockType.STEADY_TIME).now().nanoseconds
 
     # realtime ----------------------------------------------------------------------------
+    def _now_ns(self) -> int:
+        """Wall-clock time [ns] that realtime ticks fall due on (the steady clock)."""
+        return self._steady.now().nanoseconds
+
     def _on_timer(self):
-        if self._advance():
+        now = self._now_ns()
+        if self._t0_ns is None:
+            self._t0_ns = now - self.period_ns  # the first tick falls due now
+        behind = (now - self._t0_ns) // self.period_ns - self._rt_ticks
+        if behind > self.max_catch_up:
+            slip = behind - self.max_catch_up
+            self.slipped_ticks += slip
+            self._t0_ns += slip * self.period_ns
+            behind = self.max_catch_up
+            self.get_logger().warning(
+                f'{slip} ticks behind the wall clock: slipped ({self.slipped_ticks} in all)',
+                throttle_duration_sec=1.0)
+        for _ in range(behind):
+            self._rt_ticks += 1
+            if not self._advance():
+                return
             self.state_pub.publish(self._state_msg())
 
     def _on_command(self, msg: ServovalveCommand):
