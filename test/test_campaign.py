@@ -44,7 +44,8 @@ def test_campaign_runs_records_compares_and_reports(tmp_path, ros_env, monkeypat
         monkeypatch.setenv(k, v)
     out = tmp_path / 'campaign'
     s = run_campaign(out, scenarios=['step_0p1'], models=['hf', 'ga', 'nn', 'lut'],
-                     progress=lambda line: None)
+                     progress=lambda line: None, valve_tests=['worn'],
+                     valve_test_scenario='valve_test_quick')
     assert (out / 'report.md').is_file() and (out / 'step_0p1' / 'p12.png').is_file()
     summary = json.loads((out / 'summary.json').read_text())
     assert summary['models'][0] == 'hf'
@@ -52,5 +53,11 @@ def test_campaign_runs_records_compares_and_reports(tmp_path, ros_env, monkeypat
         err = summary['relative_error_vs_hf']['step_0p1'][model]
         assert 0 < err['jack_position_m'] < 1.0  # a surrogate loop that tracks the command
     assert set(summary['models']) == {'hf', 'ga', 'nn', 'lut'}
+    worn = summary['valve_test']['worn']
+    assert worn['method'] == 'diagnostic-network' and worn['level'] == 'WARN'
+    assert abs(worn['radial_clearance_m'] - worn['true_radial_clearance_m']) < 0.05e-6
+    assert abs(worn['overlap_m'] - worn['true_overlap_m']) < 0.05e-6
+    assert 'Diagnostic valve test' in (out / 'report.md').read_text()
+    assert s == summary
     with pytest.raises(FileExistsError):
         run_campaign(out, scenarios=['step_0p1'], models=['hf'])

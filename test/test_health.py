@@ -26,6 +26,9 @@ def test_in_service_fit_recovers_wear(clearance, overlap):
     assert abs(e.overlap_m - overlap) < 0.15e-6
     assert 0 < e.radial_clearance_std_m < 0.2e-6 and 0 < e.overlap_std_m < 0.2e-6
     assert e.samples_used == 200 and e.method == 'steady-fit'
+    # the data reject the nominal valve: a level is raised
+    assert e.nominal_residual_pa > 3 * e.pressure_residual_pa
+    assert classify(e, HealthThresholds.load())[0] in (WARN, ERROR)
 
 
 def test_too_few_samples_refused():
@@ -48,11 +51,34 @@ def test_levels_follow_the_thresholds():
     assert level == ERROR and 'does not explain' in text
 
 
+def test_in_service_levels_need_the_data_to_reject_the_nominal_valve():
+    """With the nominal valve's residual known: below ``anomaly_ratio`` x the best fit's the
+    data cannot tell the wear from nominal (OK whatever the fit says); above it the estimate
+    grades the level, and a deviation with the fit inside the limits is a WARN."""
+    lim = HealthThresholds.load()
+    assert lim.anomaly_ratio == 3.0
+
+    def est(clr, lap, nominal_res):
+        e = _est(clr, lap, res=2e4)
+        e.nominal_residual_pa = nominal_res
+        return e
+    level, text = classify(est(6e-6, -1e-6, 5e4), lim)      # ratio 2.5
+    assert level == OK and 'consistent with the nominal valve' in text
+    assert classify(est(6e-6, -1e-6, 7e4), lim)[0] == ERROR  # ratio 3.5
+    assert classify(est(4.2e-6, 1e-6, 7e4), lim)[0] == WARN
+    level, text = classify(est(2.5e-6, 1e-6, 7e4), lim)
+    assert level == WARN and 'valve test' in text
+
+
 @pytest.mark.parametrize('text, msg', [
     ('clearance_warn_m: 1\n', 'missing'),
     ('[1, 2]\n', 'expected a mapping'),
     ('clearance_warn_m: {value: 6.0e-6}\nclearance_error_m: 5.0e-6\noverlap_warn_m: 0\n'
-     'overlap_error_m: -1.0e-6\nresidual_error_pa: 1.0e+6\n', 'clearance_warn < clearance'),
+     'overlap_error_m: -1.0e-6\nresidual_error_pa: 1.0e+6\nanomaly_ratio: 3\n',
+     'clearance_warn < clearance'),
+    ('clearance_warn_m: 4.0e-6\nclearance_error_m: 5.0e-6\noverlap_warn_m: 0\n'
+     'overlap_error_m: -1.0e-6\nresidual_error_pa: 1.0e+6\nanomaly_ratio: 0.5\n',
+     'anomaly ratio'),
 ])
 def test_bad_threshold_files(tmp_path, text, msg):
     f = tmp_path / 'h.yaml'

@@ -43,6 +43,10 @@ class HealthEstimate:
     pressure_residual_pa: float
     samples_used: int
     method: str
+    #: RMS residual [Pa] of the nominal valve (the parameters' wear) on the same samples; NaN
+    #: where not computed.  Its ratio to ``pressure_residual_pa`` tells whether the data reject
+    #: the nominal valve at all (:func:`classify`).
+    nominal_residual_pa: float = float('nan')
 
 
 class InServiceEstimator:
@@ -138,11 +142,14 @@ class InServiceEstimator:
         except np.linalg.LinAlgError:
             cov = np.full((2, 2), np.inf)
         std = np.sqrt(np.abs(np.diag(cov))) * 1e-6
+        nominal = self._predict(xs, q, self.params.overlap_supply_m,
+                                self.params.radial_clearance_m) - p12
         return HealthEstimate(radial_clearance_m=float(x[1] * 1e-6),
                               radial_clearance_std_m=float(std[1]),
                               overlap_m=float(x[0] * 1e-6), overlap_std_m=float(std[0]),
                               pressure_residual_pa=float(np.sqrt(cost / xs.size) * scale),
-                              samples_used=int(xs.size), method=self.method)
+                              samples_used=int(xs.size), method=self.method,
+                              nominal_residual_pa=float(np.sqrt(np.mean(nominal ** 2))))
 
 
 class ValveTestEstimator:
@@ -210,6 +217,7 @@ class HealthThresholds:
     overlap_warn_m: float
     overlap_error_m: float
     residual_error_pa: float
+    anomaly_ratio: float
 
     @classmethod
     def load(cls, path=None) -> 'HealthThresholds':
@@ -231,18 +239,32 @@ class HealthThresholds:
             raise ParameterError(f'{path}: every threshold must be a number') from None
         t = cls(**values)
         if not (t.clearance_warn_m < t.clearance_error_m and t.overlap_error_m
-                < t.overlap_warn_m and t.residual_error_pa > 0):
+                < t.overlap_warn_m and t.residual_error_pa > 0 and t.anomaly_ratio >= 1):
             raise ParameterError(f'{path}: need clearance_warn < clearance_error, overlap_error '
-                                 '< overlap_warn and a positive residual limit')
+                                 '< overlap_warn, a positive residual limit and an anomaly '
+                                 'ratio of at least 1')
         return t
 
 
 def classify(est: HealthEstimate, limits: HealthThresholds) -> tuple[int, str]:
-    """Level (OK/WARN/ERROR) and a one-line reason."""
+    """Level (OK/WARN/ERROR) and a one-line reason.
+
+    An in-service estimate (``nominal_residual_pa`` known) raises a level only when the data
+    reject the nominal valve: its residual at least ``anomaly_ratio`` times the best fit's.
+    Below that the motion did not excite the valve enough to tell its wear apart from nominal
+    (small or slow commands keep the spool inside the overlap, where clearance and overlap
+    trade off), and the estimate is reported as such, level OK.  Above it but with the
+    estimated wear within limits, the valve deviates in a way the fit does not pin down: WARN.
+    """
     if est.pressure_residual_pa > limits.residual_error_pa:
         return ERROR, (f'valve model does not explain the data (residual '
                        f'{est.pressure_residual_pa / 1e6:.2f} MPa)')
     c_um, o_um = est.radial_clearance_m * 1e6, est.overlap_m * 1e6
+    ratio = est.nominal_residual_pa / max(est.pressure_residual_pa, 1e-9)
+    if np.isfinite(ratio) and ratio < limits.anomaly_ratio:
+        return OK, (f'consistent with the nominal valve (its residual {ratio:.1f}x the best '
+                    f'fit\'s, limit {limits.anomaly_ratio:g}x); best fit clearance {c_um:.2f} '
+                    f'um, overlap {o_um:.2f} um')
     if est.radial_clearance_m >= limits.clearance_error_m:
         return ERROR, f'radial clearance {c_um:.2f} um beyond its limit: replace the valve'
     if est.overlap_m <= limits.overlap_error_m:
@@ -251,4 +273,8 @@ def classify(est: HealthEstimate, limits: HealthThresholds) -> tuple[int, str]:
         return WARN, f'radial clearance {c_um:.2f} um rising: plan maintenance'
     if est.overlap_m <= limits.overlap_warn_m:
         return WARN, f'overlap {o_um:.2f} um falling: plan maintenance'
+    if np.isfinite(ratio):
+        return WARN, (f'valve deviates from nominal (its residual {ratio:.1f}x the best fit\'s) '
+                      f'but the fit (clearance {c_um:.2f} um, overlap {o_um:.2f} um) is within '
+                      'limits: run a valve test')
     return OK, f'clearance {c_um:.2f} um, overlap {o_um:.2f} um within limits'

@@ -8,8 +8,12 @@ of jack position, P12 and spool position, as ``eha-compare``), the hf recordings
 offline (``eha-diagnose``), and a report is written: ``report.md`` with the comparison table and
 one folder of PNG plots per scenario (the reference's Figures 6.4-6.16).
 
+Then the maintenance part: the diagnostic valve test (scenario ``valve_test``, the reference's
+map sweep run by the plant) on the nominal valve and on a worn one, recorded, and the wear read
+from each recording by the diagnostic network (``eha-diagnose``), against the truth.
+
     eha-campaign [--out runs/campaign-<time>] [--scenarios a,b] [--models hf,ga,nn,lut]
-                 [--processes]
+                 [--valve-tests nominal,worn] [--processes]
 
 Nothing existing is overwritten: the output folder must not exist.
 """
@@ -30,6 +34,13 @@ THESIS_SCENARIOS = ('step_0p1', 'step_0p01', 'ramp_0p1', 'ramp_0p01', 'sine_0p1_
                     'sine_0p1_10pi', 'sine_0p01_5pi', 'sine_0p01_10pi', 'sine_0p01_2pi')
 MODELS = ('hf', 'ga', 'nn', 'lut')
 
+#: Valves of the maintenance part: wear parameters set on the plant.
+VALVES = {
+    'nominal': {},
+    'worn': {'radial_clearance_m': 4.5e-6, 'overlap_supply_m': -0.5e-6,
+             'overlap_return_m': -0.5e-6},
+}
+
 
 def available_models(models):
     from eha_ros.surrogates.base import models_dir
@@ -37,7 +48,8 @@ def available_models(models):
 
 
 def run_campaign(out: Path, scenarios=THESIS_SCENARIOS, models=MODELS, processes=False,
-                 progress=print) -> dict:
+                 progress=print, valve_tests=tuple(VALVES), valve_test_scenario='valve_test',
+                 ) -> dict:
     """Run, record, compare and report; returns the summary written to ``summary.json``."""
     from eha_ros.recording.compare import compare_runs, load_run, plot_runs
     from eha_ros.testing import ros_environment
@@ -46,7 +58,10 @@ def run_campaign(out: Path, scenarios=THESIS_SCENARIOS, models=MODELS, processes
     out.mkdir(parents=True)
     models = available_models(models)
     runs, t_start = {}, time.monotonic()
-    total = len(scenarios) * len(models)
+    unknown = [v for v in valve_tests if v not in VALVES]
+    if unknown:
+        raise ParameterError(f'unknown valve {unknown[0]!r} (one of {", ".join(VALVES)})')
+    total = len(scenarios) * len(models) + len(valve_tests)
     k = 0
     for sc in scenarios:
         get_scenario(sc)
@@ -61,6 +76,26 @@ def run_campaign(out: Path, scenarios=THESIS_SCENARIOS, models=MODELS, processes
                                  'wall_s': round(r.wall_s, 2), 'ticks': int(r.state['tick'].size)}
             progress(f'[{k:2d}/{total}] {sc:15s} {model:4s} {r.sim_s:5.2f} s simulated in '
                      f'{r.wall_s:5.1f} s  -> {path.name}')
+    from eha_ros.physics import load_params
+    nominal = load_params()
+    valve_results = {}
+    for valve in valve_tests:
+        k += 1
+        path = out / f'{valve_test_scenario}_{valve}.mcap'
+        with ros_environment() as env:
+            r = run_graph(GraphConfig(scenario=valve_test_scenario, model='hf', mode='lockstep',
+                                      record=str(path), plant=dict(VALVES[valve])),
+                          processes=processes, env=env, timeout_s=120)
+        runs[(valve_test_scenario, valve)] = {'file': path.name, 'sim_s': r.sim_s,
+                                              'wall_s': round(r.wall_s, 2),
+                                              'ticks': int(r.state['tick'].size)}
+        progress(f'[{k:2d}/{total}] {valve_test_scenario:15s} {valve:7s} {r.sim_s:5.2f} s '
+                 f'simulated in {r.wall_s:5.1f} s  -> {path.name}')
+        d = diagnose(str(path))
+        d['true_radial_clearance_m'] = VALVES[valve].get('radial_clearance_m',
+                                                         nominal.radial_clearance_m)
+        d['true_overlap_m'] = VALVES[valve].get('overlap_supply_m', nominal.overlap_supply_m)
+        valve_results[valve] = d
     table, diagnoses = {}, {}
     for sc in scenarios:
         files = [out / f'{sc}_{m}.mcap' for m in models]
@@ -72,7 +107,8 @@ def run_campaign(out: Path, scenarios=THESIS_SCENARIOS, models=MODELS, processes
     summary = {'models': models, 'scenarios': list(scenarios),
                'wall_s': round(time.monotonic() - t_start, 1),
                'runs': {f'{s}/{m}': v for (s, m), v in runs.items()},
-               'relative_error_vs_hf': table, 'diagnosis_hf': diagnoses}
+               'relative_error_vs_hf': table, 'diagnosis_hf': diagnoses,
+               'valve_test': valve_results}
     (out / 'summary.json').write_text(json.dumps(summary, indent=1))
     (out / 'report.md').write_text(_report(summary))
     return summary
@@ -104,6 +140,17 @@ def _report(s) -> str:
                      f'{d["radial_clearance_std_m"] * 1e6:.2f} | {d["overlap_m"] * 1e6:.2f} ± '
                      f'{d["overlap_std_m"] * 1e6:.2f} | {d["pressure_residual_pa"] / 1e6:.3f} | '
                      f'{d["level"]} |')
+    if s.get('valve_test'):
+        lines += ['', 'Diagnostic valve test (the plant runs the reference\'s map sweep, jack '
+                  'clamped; `eha-diagnose` reads the wear from the recorded curves with the '
+                  'diagnostic network):', '',
+                  '| valve | clearance: true / estimated [um] | overlap: true / estimated [um] '
+                  '| residual [MPa] | level |', '| --- | ---: | ---: | ---: | --- |']
+        for valve, d in s['valve_test'].items():
+            lines.append(f'| {valve} | {d["true_radial_clearance_m"] * 1e6:.2f} / '
+                         f'{d["radial_clearance_m"] * 1e6:.3f} | '
+                         f'{d["true_overlap_m"] * 1e6:.2f} / {d["overlap_m"] * 1e6:.3f} | '
+                         f'{d["pressure_residual_pa"] / 1e6:.3f} | {d["level"]} |')
     lines += ['', 'Plots: one folder per scenario (`jack_position.png`, `p12.png`, '
               '`spool_position.png`), every model overlaid.', '',
               'Runs (simulated / wall seconds):', '']
@@ -123,6 +170,8 @@ def main(argv=None) -> int:
     ap.add_argument('--out', type=Path, default=Path('runs') / f'campaign-{stamp}')
     ap.add_argument('--scenarios', default=','.join(THESIS_SCENARIOS))
     ap.add_argument('--models', default=','.join(MODELS))
+    ap.add_argument('--valve-tests', default=','.join(VALVES),
+                    help='valves given the diagnostic valve test (empty: none)')
     ap.add_argument('--processes', action='store_true',
                     help='each node its own process (default: one process, one executor)')
     args = ap.parse_args(argv)
@@ -137,7 +186,8 @@ def main(argv=None) -> int:
         return 2
     try:
         s = run_campaign(args.out, args.scenarios.split(','), args.models.split(','),
-                         args.processes, progress=lambda line: print(line, flush=True))
+                         args.processes, progress=lambda line: print(line, flush=True),
+                         valve_tests=[v for v in args.valve_tests.split(',') if v])
     except (ParameterError, GraphError) as exc:
         print(f'eha-campaign: error: {exc}', file=sys.stderr)
         return 2
