@@ -35,9 +35,10 @@ def test_package_messages_are_valid():
         'ActuatorCommand', 'ActuatorState', 'HealthStatus', 'ServovalveCommand']
     assert dependencies == ['builtin_interfaces', 'std_msgs']  # dependencies first
     state = {s.name: s for s in specs}['ActuatorState']
-    assert len(state.fields) == 16
+    assert len(state.fields) == 18
     assert {c.name: c.value for c in state.constants} == {
-        'STATUS_OK': 0, 'STATUS_END_STOP': 1, 'STATUS_CAVITATION': 2, 'STATUS_DIVERGED': 3}
+        'STATUS_OK': 0, 'STATUS_END_STOP': 1, 'STATUS_CAVITATION': 2, 'STATUS_DIVERGED': 3,
+        'STATUS_VALVE_TEST': 4}
 
 
 @pytest.mark.parametrize('line, field, reason', [

@@ -97,7 +97,7 @@ def test_network_reads_wear_from_valve_test_curves(clearance, overlap):
 def test_graph_runs_the_valve_test_and_the_monitor_reads_the_wear(eha_graph, processes,
                                                                   tmp_path):
     """Lockstep, one-flow valve test on a worn valve (clearance 4.5 um, overlap -0.5 um),
-    then 50 ms of operation, nodes in one process and as console scripts (the flows cross
+    then 100 ms of operation, nodes in one process and as console scripts (the flows cross
     the command line as a double array; that run is recorded and diagnosed offline): the
     plant's states at the point ends are the map, the health
     monitor publishes the network's estimate within 0.05 um of the truth, graded WARN
@@ -105,13 +105,13 @@ def test_graph_runs_the_valve_test_and_the_monitor_reads_the_wear(eha_graph, pro
     wear = {'radial_clearance_m': 4.5e-6, 'overlap_supply_m': -0.5e-6,
             'overlap_return_m': -0.5e-6}
     record = str(tmp_path / 'valve_test.mcap') if processes else ''
-    r = eha_graph(processes=processes, scenario='valve_test_quick', duration_s=1.38, plant=wear,
+    r = eha_graph(processes=processes, scenario='valve_test_quick', duration_s=1.43, plant=wear,
                   health=True, record=record)
     st = r.state
     test = st['status'] == 4
     n = MAP_POINTS * 10  # ticks of the test, after the initial state (tick 0)
     assert test.sum() == n and np.all(test[1:n + 1])
-    assert not test[n + 1:].any() and test.size == n + 51
+    assert not test[n + 1:].any() and test.size == n + 101
     ends = test & st['valve_test_point_end']
     assert_array_equal(st['valve_test_point'][ends], np.arange(MAP_POINTS))
     p = _worn(4.5e-6, -0.5e-6)

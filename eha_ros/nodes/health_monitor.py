@@ -65,6 +65,7 @@ class HealthMonitor(Node):
         except (SurrogateError, OSError) as exc:  # in-service estimation still works
             self.test_estimator = None
             self.test_error = ' '.join(str(exc).split())
+        self._warm_up()
         self.curves = {}          # flow -> {point: (xs, p12)} of the running valve test
         self.curves_done = []     # (q, xs, p12) of its complete curves
         self.in_test = False
@@ -76,6 +77,19 @@ class HealthMonitor(Node):
         self.next_ns = None
         self.last = None
         self.published = 0
+
+    def _warm_up(self):
+        """Compile (or load from numba's cache) the kernels the estimates call, before the
+        first state arrives: an estimate then takes milliseconds, not a compilation."""
+        xs = np.linspace(-1e-4, 1e-4, 12)
+        q = np.zeros(12)
+        self.estimator.estimate(xs, q, self.estimator._predict(
+            xs, q, self.params.overlap_supply_m, self.params.radial_clearance_m))
+        if self.test_estimator is not None:
+            from eha_ros.physics.maps import transient_map
+            grid = self.test_estimator.model.xs_m
+            self.test_estimator.estimate([(1e-5, grid, transient_map(
+                grid, 1e-5, params=self.params, t_end_s=1e-5)['p12_pa'])])
 
     def _on_set(self, changes):
         if {'params_file', 'thresholds_file', 'model'} & set(changes):
