@@ -6,7 +6,8 @@ Prints one JSON object:
   inter-arrival time minus the period: p50/p99/max of its absolute value) and command->state
   latency (from the collector's receipt of a ``ServovalveCommand`` to its receipt of the next
   ``ActuatorState``: it includes the wait for the plant's next tick, uniform in 0..1 period),
-  the first second (discovery, JIT load) left out;
+  the first second (discovery, JIT load) left out; the controller's achieved rate (current
+  commands per wall second) and the command generator's messages per plant state;
 * ``lockstep``: simulated seconds per wall second for hf and each shipped surrogate, between the
   first and the last state (start-up reported separately).
 
@@ -46,7 +47,10 @@ def realtime(seconds):
             'tick_jitter_p50_us': _us(jitter, 50), 'tick_jitter_p99_us': _us(jitter, 99),
             'tick_jitter_max_us': round(float(jitter.max()) * 1e6, 1),
             'command_to_state_latency_p50_us': _us(lat, 50),
-            'command_to_state_latency_p99_us': _us(lat, 99)}
+            'command_to_state_latency_p99_us': _us(lat, 99),
+            'controller_rate_hz': round(float((sv_ss.size - 1) / (sv_ss[-1] - sv_ss[0])), 1),
+            'command_generator_messages_per_state': round(
+                float(r.command['stamp_ns'].size / st.size), 3)}
 
 
 def lockstep(models, sim_s, processes):

@@ -12,7 +12,12 @@ times with the recorded spacing.
 Prints one JSON object::
 
     python bench/recording.py [--duration 60] [--rate 1000] [--replay-seconds 10]
-    python bench/recording.py --graph          # record the real graph (not wired yet)
+    python bench/recording.py --graph          # record the real graph instead
+
+``--graph``: the real node graph instead (each node its own process, realtime at 1 kHz, the
+``sine_0p1_5pi`` command continued for the duration, health monitor on); published counts are
+then what the publishers' sequence numbers account for (recorded + lost + missed at start), and
+the lateness figures are the plant's state inter-arrival jitter at the harness.
 
 Figures: per topic published / recorded / lost (sequence gaps) / missed at start; recorder CPU
 (process CPU time over wall time while publishing, 1.0 = one core); file bytes per simulated
@@ -212,13 +217,18 @@ def _cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / CLK_TCK   # utime + stime
 
 
-def start_graph(env: dict, cwd: Path, duration_s: float):
-    """Start the real actuator graph for ``duration_s`` (for ``--graph``); returns its process.
-
-    Not wired yet: the graph's launch entry point is to be called here.
-    """
-    raise NotImplementedError('--graph: starting the actuator graph is not wired yet; '
-                              'run without --graph for the synthetic 1 kHz publisher')
+def run_real_graph(env: dict, duration_s: float, rate_hz: float) -> dict:
+    """Run the actuator graph in realtime for ``duration_s`` (``--graph``); returns what the
+    synthetic publisher reports, from the harness's view of the run."""
+    from eha_ros.harness import GraphConfig, run_graph
+    r = run_graph(GraphConfig(scenario='sine_0p1_5pi', mode='realtime', duration_s=duration_s,
+                              rate_hz=rate_hz, health=True), processes=True, env=env,
+                  timeout_s=60)
+    arrival = r.state['arrival_s']
+    late = np.abs(np.diff(arrival) - 1.0 / rate_hz) * 1e6 if arrival.size > 1 else np.zeros(1)
+    return {'simulated_s': r.sim_s, 'wall_s': r.wall_s, 'published': None,
+            'lateness_p50_us': float(np.percentile(late, 50)),
+            'lateness_p99_us': float(np.percentile(late, 99))}
 
 
 def run(duration_s: float = 60.0, rate_hz: float = 1000.0, replay_s: float = 10.0,
@@ -236,30 +246,38 @@ def run(duration_s: float = 60.0, rate_hz: float = 1000.0, replay_s: float = 10.
                                     text=True)
         try:
             if graph:
-                source = start_graph(env, cwd, duration_s)
+                cpu0, wall0 = _cpu_s(recorder.pid), time.monotonic()
+                pub = run_real_graph(env, duration_s, rate_hz)
+                cpu1, wall1 = _cpu_s(recorder.pid), time.monotonic()
+                time.sleep(1.0)  # the last messages reach the recorder
             else:
                 source = subprocess.Popen(
                     [sys.executable, str(HERE), '--role', 'publisher', '--duration',
                      str(duration_s), '--rate', str(rate_hz)], env=env, cwd=cwd,
                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-            # CPU of the recorder while traffic flows (discovery excluded as far as possible).
-            time.sleep(min(2.0, duration_s / 10))
-            cpu0, wall0 = _cpu_s(recorder.pid), time.monotonic()
-            out, err = source.communicate(timeout=duration_s + 120)
-            cpu1, wall1 = _cpu_s(recorder.pid), time.monotonic()
+                # CPU of the recorder while traffic flows (discovery excluded as far as
+                # possible).
+                time.sleep(min(2.0, duration_s / 10))
+                cpu0, wall0 = _cpu_s(recorder.pid), time.monotonic()
+                out, err = source.communicate(timeout=duration_s + 120)
+                cpu1, wall1 = _cpu_s(recorder.pid), time.monotonic()
         finally:
             if recorder.poll() is None:
                 recorder.send_signal(signal.SIGINT)
             _, rec_err = recorder.communicate(timeout=60)
         if recorder.returncode != 0:
             raise RuntimeError(f'recorder failed: {rec_err.strip()}')
-        if source.returncode != 0:
-            raise RuntimeError(f'publisher failed: {err.strip()}')
-        pub = json.loads(out.strip().splitlines()[-1])
+        if not graph:
+            if source.returncode != 0:
+                raise RuntimeError(f'publisher failed: {err.strip()}')
+            pub = json.loads(out.strip().splitlines()[-1])
 
         info = scan(output, strict=True)
         lost = info.lost_messages()
         missed = info.run_info().get('missed_at_start', {})
+        if pub['published'] is None:  # the graph: as far as the sequence numbers tell
+            pub['published'] = {t: n + lost.get(t, 0) + missed.get(t, 0)
+                                for t, n in info.message_counts.items()}
         per_topic = {}
         for topic, published in pub['published'].items():
             recorded = info.message_counts.get(topic, 0)
@@ -304,12 +322,7 @@ def main() -> int:
     if args.role == 'publisher':
         print(json.dumps(_publish(args.duration, args.rate, wait_s=15.0)))
         return 0
-    try:
-        result = run(args.duration, args.rate, args.replay_seconds, args.graph)
-    except NotImplementedError as exc:
-        print(f'bench/recording.py: {exc}', file=sys.stderr)
-        return 2
-    print(json.dumps(result))
+    print(json.dumps(run(args.duration, args.rate, args.replay_seconds, args.graph)))
     return 0
 
 

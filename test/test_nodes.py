@@ -172,6 +172,36 @@ def test_realtime_plant_locks_simulated_time_to_the_wall_clock(ros_env):
         rclpy.try_shutdown(context=ctx)
 
 
+@pytest.mark.parametrize('trigger, per_state', [('state', 1), ('timer', 0)])
+def test_realtime_controller_trigger(ros_env, trigger, per_state):
+    """Realtime controller: by default every plant state clocks one control step (current from
+    the latest setpoint and this state's sensor reading); with ``trigger:=timer`` states only
+    update the reading and its own timer publishes."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from eha_ros.msg import ActuatorCommand, ActuatorState
+    from eha_ros.nodes.controller import Controller
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+    try:
+        node = Controller(context=ctx, parameter_overrides=[
+            Parameter('mode', value='realtime'), Parameter('trigger', value=trigger)])
+        sent = []
+        node.pub.publish = sent.append
+        node._on_command(ActuatorCommand(position_setpoint_m=1e-4))
+        for k in range(3):
+            node._on_state(ActuatorState(jack_position_measured_m=k * 1e-5))
+        assert len(sent) == 3 * per_state
+        if per_state:
+            kp = node.params.kp_a_m
+            assert sent[-1].current_command_a == pytest.approx(kp * (1e-4 - 2e-5))
+        assert len(list(node.timers)) == 1 - per_state
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
 @pytest.mark.parametrize('model', ['lut', 'ga', 'nn'])
 def test_loop_with_each_surrogate_is_stable_and_matches_its_physics_run(eha_graph, model):
     """The plant with a surrogate fluid block closes the loop: the 0.1 mm step settles within

@@ -1,8 +1,10 @@
 """``controller``: PID on the jack position error, publishes the coil current command
 (``ServovalveCommand``).
 
-Realtime mode: a wall-clock timer at ``rate_hz`` uses the latest command and the latest sensor
-reading.  Lockstep mode: for each plant tick it waits for both the state and the command of
+Realtime mode: each plant state clocks one control step (``trigger: state``, the default: the
+sensor sample triggers the digital controller, so it runs at the plant's rate and no
+timer of its own competes for the processor), or a wall-clock timer at ``rate_hz`` does
+(``trigger: timer``); either uses the latest command and the latest sensor reading.  Lockstep mode: for each plant tick it waits for both the state and the command of
 that tick (matching stamps), then answers with the current for that tick; a repeated tick
 (the plant re-sending after a lost message) gets the same answer again.
 
@@ -26,6 +28,10 @@ from .common import (MODES, TOPIC_COMMAND, TOPIC_SERVOVALVE, TOPIC_STATE, advert
 GAINS = ('kp_a_m', 'ki_a_m_s', 'kd_a_s_m', 'current_limit_a')
 
 
+#: What clocks the realtime controller.
+TRIGGERS = ('state', 'timer')
+
+
 class Controller(Node):
     """Position controller node."""
 
@@ -37,6 +43,10 @@ class Controller(Node):
         declare_physics(self, self.base, GAINS)
         declare(self, 'rate_hz', 1000.0, 'control rate [Hz]', 1.0, 1e5)
         declare(self, 'mode', 'realtime', 'timing mode', choices=MODES)
+        self.trigger = declare(self, 'trigger', 'state', 'realtime: a control step per plant '
+                               'state, or per tick of its own timer', choices=TRIGGERS)
+        if self.trigger not in TRIGGERS:
+            raise ParameterError(f'trigger {self.trigger!r} must be one of {", ".join(TRIGGERS)}')
         self.mode = self.get_parameter('mode').value
         if self.mode not in MODES:
             raise ParameterError(f'mode {self.mode!r} must be one of {", ".join(MODES)}')
@@ -54,7 +64,7 @@ class Controller(Node):
         self._state_ns = None  # lockstep: tick waiting for its command
         self._answered = (None, 0.0)  # lockstep: last tick answered and its current
         self.published = 0
-        if self.mode == 'realtime':
+        if self.mode == 'realtime' and self.trigger == 'timer':
             self.create_timer(self.period_s, self._on_timer)
 
     def _params(self, changes):
@@ -63,8 +73,9 @@ class Controller(Node):
         return replace(self.base, **values)
 
     def _on_set(self, changes):
-        if {'mode', 'rate_hz', 'params_file'} & set(changes):
-            raise ParameterError('mode, rate_hz and params_file cannot change while running')
+        if {'mode', 'rate_hz', 'params_file', 'trigger'} & set(changes):
+            raise ParameterError('mode, rate_hz, trigger and params_file cannot change while '
+                                 'running')
         if set(changes) & set(GAINS):
             self.params = self._params(changes)
             self.pid.params = self.params
@@ -92,6 +103,10 @@ class Controller(Node):
 
     def _on_state(self, msg: ActuatorState):
         self.measured_m = msg.jack_position_measured_m
+        if self.mode == 'realtime':
+            if self.trigger == 'state':
+                self._on_timer()
+            return
         if self.mode == 'lockstep':
             t_ns = stamp_to_ns(msg.header.stamp)
             if t_ns == self._answered[0]:
