@@ -40,7 +40,8 @@ def main():
     net = ValveTestEstimator(p0)
     flows = get_scenario('valve_test').valve_test_flows_m3_s
     xs = spool_grid(133, p0.spool_stroke_m)
-    out = {'benchmark': 'health', 'anomaly_ratio': lim.anomaly_ratio, 'in_service': {},
+    out = {'benchmark': 'health', 'anomaly_ratio': lim.anomaly_ratio,
+           'model_bias_pa': lim.model_bias_pa, 'in_service': {},
            'valve_test': {}}
     t0 = time.perf_counter()
     for valve, (clr, lap) in VALVES.items():
@@ -55,7 +56,10 @@ def main():
                         'overlap_um': round(e.overlap_m * 1e6, 3),
                         'clearance_error_um': round((e.radial_clearance_m - clr) * 1e6, 3),
                         'overlap_error_um': round((e.overlap_m - lap) * 1e6, 3),
-                        'ratio': round(e.nominal_residual_pa / e.pressure_residual_pa, 2),
+                        'residual_kpa': round(e.pressure_residual_pa / 1e3, 1),
+                        'nominal_residual_kpa': round(e.nominal_residual_pa / 1e3, 1),
+                        'ratio': round(e.nominal_residual_pa / max(e.pressure_residual_pa,
+                                                                   lim.model_bias_pa), 2),
                         'level': LEVELS[level]}
         out['in_service'][valve] = rows
         curves = [(q, xs, transient_map(xs, q, params=p)['p12_pa']) for q in flows]

@@ -52,9 +52,10 @@ def test_levels_follow_the_thresholds():
 
 
 def test_in_service_levels_need_the_data_to_reject_the_nominal_valve():
-    """With the nominal valve's residual known: below ``anomaly_ratio`` x the best fit's the
-    data cannot tell the wear from nominal (OK whatever the fit says); above it the estimate
-    grades the level, and a deviation with the fit inside the limits is a WARN."""
+    """With the nominal valve's residual known: below ``anomaly_ratio`` x the best fit's (or x
+    ``model_bias_pa``, whichever is larger) the data cannot tell the wear from nominal (OK
+    whatever the fit says); above it the estimate grades the level, and a deviation with the
+    fit inside the limits is a WARN."""
     lim = HealthThresholds.load()
     assert lim.anomaly_ratio == 3.0
 
@@ -62,23 +63,28 @@ def test_in_service_levels_need_the_data_to_reject_the_nominal_valve():
         e = _est(clr, lap, res=2e4)
         e.nominal_residual_pa = nominal_res
         return e
-    level, text = classify(est(6e-6, -1e-6, 5e4), lim)      # ratio 2.5
+    assert lim.model_bias_pa == 5e4
+    level, text = classify(est(6e-6, -1e-6, 1.2e5), lim)    # ratio 1.2e5 / 5e4 = 2.4
     assert level == OK and 'consistent with the nominal valve' in text
-    assert classify(est(6e-6, -1e-6, 7e4), lim)[0] == ERROR  # ratio 3.5
-    assert classify(est(4.2e-6, 1e-6, 7e4), lim)[0] == WARN
-    level, text = classify(est(2.5e-6, 1e-6, 7e4), lim)
+    assert classify(est(6e-6, -1e-6, 1.6e5), lim)[0] == ERROR  # 3.2
+    assert classify(est(4.2e-6, 1e-6, 1.6e5), lim)[0] == WARN
+    level, text = classify(est(2.5e-6, 1e-6, 1.6e5), lim)
     assert level == WARN and 'valve test' in text
+    # the floor: a fit far better than the model's bias on a healthy valve proves nothing
+    e = est(6e-6, -1e-6, 1.2e5)
+    e.pressure_residual_pa = 1e3     # unfloored ratio 120
+    assert classify(e, lim)[0] == OK
 
 
 @pytest.mark.parametrize('text, msg', [
     ('clearance_warn_m: 1\n', 'missing'),
     ('[1, 2]\n', 'expected a mapping'),
     ('clearance_warn_m: {value: 6.0e-6}\nclearance_error_m: 5.0e-6\noverlap_warn_m: 0\n'
-     'overlap_error_m: -1.0e-6\nresidual_error_pa: 1.0e+6\nanomaly_ratio: 3\n',
-     'clearance_warn < clearance'),
+     'overlap_error_m: -1.0e-6\nresidual_error_pa: 1.0e+6\nanomaly_ratio: 3\n'
+     'model_bias_pa: 5.0e+4\n', 'clearance_warn < clearance'),
     ('clearance_warn_m: 4.0e-6\nclearance_error_m: 5.0e-6\noverlap_warn_m: 0\n'
-     'overlap_error_m: -1.0e-6\nresidual_error_pa: 1.0e+6\nanomaly_ratio: 0.5\n',
-     'anomaly ratio'),
+     'overlap_error_m: -1.0e-6\nresidual_error_pa: 1.0e+6\nanomaly_ratio: 0.5\n'
+     'model_bias_pa: 5.0e+4\n', 'anomaly ratio'),
 ])
 def test_bad_threshold_files(tmp_path, text, msg):
     f = tmp_path / 'h.yaml'

@@ -94,11 +94,20 @@ def test_lockstep_hf_step_equals_physics_simulation(eha_graph, processes):
     assert 0.9e-4 < r.state['jack_position_m'][-1] < 1.1e-4
 
 
-def test_two_lockstep_runs_are_identical(eha_graph):
+def test_two_lockstep_runs_are_identical(eha_graph, monkeypatch):
+    """Two runs, on the default (events) executor and on rclpy's single-threaded one, give
+    the same data."""
     a = eha_graph(processes=False, scenario='sine_0p1_10pi', duration_s=0.08, seed=1)
+    monkeypatch.setenv('EHA_ROS_EXECUTOR', 'single')
     b = eha_graph(processes=False, scenario='sine_0p1_10pi', duration_s=0.08, seed=1)
+    assert a.state['tick'].size == 81
     for field in set(a.state) - {'arrival_s'}:  # all but the wall-clock receipt times
         assert_array_equal(a.state[field], b.state[field], err_msg=field)
+    monkeypatch.setenv('EHA_ROS_EXECUTOR', 'turbo')
+    from eha_ros.nodes.common import make_executor
+    from eha_ros.physics import ParameterError
+    with pytest.raises(ParameterError, match='EHA_ROS_EXECUTOR'):
+        make_executor()
 
 
 def test_runtime_degradation_is_picked_up_by_health_monitor(eha_graph):
@@ -120,14 +129,16 @@ def test_runtime_degradation_is_picked_up_by_health_monitor(eha_graph):
 
 
 def test_realtime_mode_ticks_at_its_rate(eha_graph):
-    """Realtime: wall-clock timers.  Each state advances the simulation by exactly one tick,
+    """Realtime: wall-clock timers.  Each state is a whole tick of the simulation (1000 steps),
     and the plant keeps up with the command stream (the loop closes: the jack moves)."""
     r = eha_graph(processes=True, mode='realtime', scenario='step_1mm', duration_s=1.0,
                   timeout_s=60)
     t = r.state['sim_time_s']
     assert t.size > 100
-    steps = np.diff(r.state['tick'])
-    assert np.all(steps == 1000)
+    ticks = r.state['tick']
+    assert np.all(ticks % 1000 == 0) and np.all(np.diff(ticks) > 0)
+    # realtime QoS may drop a state for a subscriber that falls behind; nearly all arrive
+    assert t.size >= 0.9 * (ticks[-1] - ticks[0]) / 1000
     assert r.state['jack_position_m'].max() > 0.5e-3
 
 

@@ -2,6 +2,9 @@
 closed forms, accuracy on freshly generated maps, the fit, and artefact handling."""
 
 import importlib.util
+from pathlib import Path
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -364,3 +367,35 @@ def test_artefacts_carry_units_normalisation_and_hash(shipped_lut, shipped_ga):
     assert shipped_lut.meta['ranges']['overlap_m'] == list(WEAR_RANGES['overlap_m'])
     size = (base.models_dir() / 'lut.npz').stat().st_size
     assert size <= 2_000_000
+
+
+_FRESH_PROCESS = """
+from numba import njit
+from eha_ros.physics import Plant
+from eha_ros.surrogates.base import FluidSurrogate, load_surrogate
+
+@njit
+def local_kernel(data, xs, q, lap, clr):  # a kernel numba can only pickle by value
+    return data[0][0] * xs
+
+Plant().advance(0.0, 10)
+Plant(fluid=load_surrogate('lut')).advance(0.0, 10)
+s = FluidSurrogate('local', local_kernel, (__import__('numpy').ones(1),), {})
+Plant(fluid=s).advance(0.0, 10)
+print(s.p12(1.0, 0.0, 0.0, 1e-6))
+"""
+
+
+def test_kernels_passed_as_arguments_never_reach_the_disk_cache(tmp_path):
+    """Fresh processes, one after the other, each running the plant with the hf block, a
+    shipped surrogate and a kernel of their own: every one succeeds (a numba function typed
+    by its object in a disk-cache key breaks the cache for later processes), and the loop
+    that takes the kernel as an argument leaves no cache entry."""
+    import eha_ros.physics.plant as plant
+    for _ in range(2):
+        out = subprocess.run([sys.executable, '-c', _FRESH_PROCESS], capture_output=True,
+                             text=True, cwd=tmp_path, timeout=300)
+        assert out.returncode == 0, out.stderr[-2000:]
+        assert out.stdout.strip() == '1.0'
+    cache = Path(plant.__file__).parent / '__pycache__'
+    assert not list(cache.glob('plant._run-*'))

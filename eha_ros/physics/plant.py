@@ -132,7 +132,7 @@ def no_fluid_block(data, xs_m, q_m3_s, overlap_m, clearance_m):
 NO_FLUID_DATA = (np.zeros(1),)
 
 
-@njit(cache=True)
+@njit  # not cached on disk: see below
 def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, dt_ns, n_steps,
          steps_per_tick, rec_every, rec, fluid_fn, fluid_data, use_fluid_fn):
     """Advance the plant state ``s`` (in place) by ``n_steps`` steps of ``dt``.
@@ -151,6 +151,11 @@ def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, d
     integer nanoseconds a ROS clock carries, so the graph evaluates commands at the same
     times bit for bit.  Returns ``(status, steps done, rows recorded, i_cmd)``:
     status 0, or 1 + the index into ``_WATCHED`` of the first state that diverged.
+
+    Not cached on disk: ``fluid_fn`` (a numba function passed as an argument) is typed by its
+    object, not its code, so a cache entry keyed by it never matches in another process and,
+    once that object is gone, breaks the saving of the cache index for every later entry.  The
+    blocks it calls are cached; this function compiles in a few seconds per process.
     """
     cf = flapper_damping(p)
     drive, c_eq = spool_gains(p)

@@ -49,7 +49,7 @@ def register_kernel(kind: str):
     return deco
 
 
-@njit(cache=True)
+@njit  # not cached: a kernel argument's type names the kernel object (see physics.plant)
 def _vectorise(kernel, data, xs, q, lap, clr, out):
     for i in range(xs.size):
         out[i] = kernel(data, xs[i], q[i], lap[i], clr[i])

@@ -218,6 +218,7 @@ class HealthThresholds:
     overlap_error_m: float
     residual_error_pa: float
     anomaly_ratio: float
+    model_bias_pa: float
 
     @classmethod
     def load(cls, path=None) -> 'HealthThresholds':
@@ -239,10 +240,11 @@ class HealthThresholds:
             raise ParameterError(f'{path}: every threshold must be a number') from None
         t = cls(**values)
         if not (t.clearance_warn_m < t.clearance_error_m and t.overlap_error_m
-                < t.overlap_warn_m and t.residual_error_pa > 0 and t.anomaly_ratio >= 1):
+                < t.overlap_warn_m and t.residual_error_pa > 0 and t.anomaly_ratio >= 1
+                and t.model_bias_pa > 0):
             raise ParameterError(f'{path}: need clearance_warn < clearance_error, overlap_error '
-                                 '< overlap_warn, a positive residual limit and an anomaly '
-                                 'ratio of at least 1')
+                                 '< overlap_warn, positive residual limit and model bias and an '
+                                 'anomaly ratio of at least 1')
         return t
 
 
@@ -250,7 +252,9 @@ def classify(est: HealthEstimate, limits: HealthThresholds) -> tuple[int, str]:
     """Level (OK/WARN/ERROR) and a one-line reason.
 
     An in-service estimate (``nominal_residual_pa`` known) raises a level only when the data
-    reject the nominal valve: its residual at least ``anomaly_ratio`` times the best fit's.
+    reject the nominal valve: its residual at least ``anomaly_ratio`` times the best fit's, or
+    times ``model_bias_pa`` if that is larger (a fit better than the model's own bias on a
+    healthy valve proves nothing).
     Below that the motion did not excite the valve enough to tell its wear apart from nominal
     (small or slow commands keep the spool inside the overlap, where clearance and overlap
     trade off), and the estimate is reported as such, level OK.  Above it but with the
@@ -260,7 +264,7 @@ def classify(est: HealthEstimate, limits: HealthThresholds) -> tuple[int, str]:
         return ERROR, (f'valve model does not explain the data (residual '
                        f'{est.pressure_residual_pa / 1e6:.2f} MPa)')
     c_um, o_um = est.radial_clearance_m * 1e6, est.overlap_m * 1e6
-    ratio = est.nominal_residual_pa / max(est.pressure_residual_pa, 1e-9)
+    ratio = est.nominal_residual_pa / max(est.pressure_residual_pa, limits.model_bias_pa)
     if np.isfinite(ratio) and ratio < limits.anomaly_ratio:
         return OK, (f'consistent with the nominal valve (its residual {ratio:.1f}x the best '
                     f'fit\'s, limit {limits.anomaly_ratio:g}x); best fit clearance {c_um:.2f} '

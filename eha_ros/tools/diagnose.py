@@ -97,7 +97,10 @@ def diagnose(path, params=None, window_s=None, skip_s=0.05, max_samples=400, met
             'radial_clearance_m': est.radial_clearance_m,
             'radial_clearance_std_m': est.radial_clearance_std_m, 'overlap_m': est.overlap_m,
             'overlap_std_m': est.overlap_std_m,
-            'pressure_residual_pa': est.pressure_residual_pa, 'method': est.method,
+            'pressure_residual_pa': est.pressure_residual_pa,
+            'nominal_residual_pa': (est.nominal_residual_pa
+                                    if np.isfinite(est.nominal_residual_pa) else None),
+            'method': est.method,
             'level': LEVELS[level], 'message': text}
 
 
