@@ -243,7 +243,7 @@ def test_round_trip_every_message_type_in_memory():
     assert {m.name for m in ref.iter_metadata()} == {'rosbag2', 'eha_ros'}
 
 
-def test_topic_arrays_for_analysis():
+def test_topic_arrays_for_analysis(tmp_path):
     buf = io.BytesIO()
     t = 5_000_000_000 + np.arange(50) * 1_000_000
     x = np.sin(np.arange(50) / 7.0)
@@ -257,6 +257,11 @@ def test_topic_arrays_for_analysis():
     assert set(arrays['model']) == {'lut'}
     with pytest.raises(KeyError, match='/eha/command'):
         mcap_io.load_topic_arrays(buf.getvalue(), topics.TOPIC_COMMAND)
+    with pytest.raises(mcap_io.RecordingError) as err:  # one error type for every caller
+        mcap_io.load_topic_arrays(buf.getvalue(), topics.TOPIC_COMMAND)
+    assert str(err.value).startswith('input has no topic /eha/command (topics: /eha/state')
+    with pytest.raises(mcap_io.RecordingError, match='cannot read .*missing.mcap'):
+        mcap_io.load_topic_arrays(tmp_path / 'missing.mcap', topics.TOPIC_STATE)
 
 
 def test_writer_refuses_to_overwrite(tmp_path):

@@ -4,13 +4,16 @@
 Realtime mode: each plant state clocks one control step (``trigger: state``, the default: the
 sensor sample triggers the digital controller, so it runs at the plant's rate and no
 timer of its own competes for the processor), or a wall-clock timer at ``rate_hz`` does
-(``trigger: timer``); either uses the latest command and the latest sensor reading.  Lockstep mode: for each plant tick it waits for both the state and the command of
+(``trigger: timer``); either uses the latest command and the latest sensor reading.
+
+Lockstep mode: for each plant tick it waits for both the state and the command of
 that tick (matching stamps), then answers with the current for that tick; a repeated tick
 (the plant re-sending after a lost message) gets the same answer again.
 
 The arithmetic is :class:`eha_ros.physics.plant.PositionController`, the same as the
 physics-only closed loop.  Parameters: ``kp_a_m``, ``ki_a_m_s``, ``kd_a_s_m``,
-``current_limit_a`` (defaults from ``params_file``), ``rate_hz``, ``mode``, ``params_file``.
+``current_limit_a`` (defaults from ``params_file``), ``rate_hz``, ``mode``, ``trigger``,
+``params_file``.
 """
 
 from __future__ import annotations

@@ -25,6 +25,7 @@ from rclpy.node import Node
 
 from eha_ros.msg import ActuatorState, HealthStatus
 from eha_ros.physics import ParameterError, load_params
+from eha_ros.physics.valve_test import MAP_POINTS
 from eha_ros.surrogates.base import SurrogateError
 from eha_ros.surrogates.health import (HealthThresholds, InServiceEstimator, ValveTestEstimator,
                                        classify)
@@ -129,7 +130,7 @@ class HealthMonitor(Node):
         q = msg.load_flow_m3_s
         curve = self.curves.setdefault(q, {})
         curve[msg.valve_test_point] = (msg.spool_position_m, msg.p12_pa)
-        n = (self.test_estimator.model.xs_m.size if self.test_estimator is not None else 133)
+        n = MAP_POINTS
         if msg.valve_test_point != n - 1:
             return
         if len(curve) < n:  # points lost (realtime): the network needs the whole curve

@@ -9,7 +9,9 @@ last coil-current command held.
 Realtime mode: a wall-clock timer at ``rate_hz``; simulated time is locked to the wall clock:
 when a timer call comes late (a busy machine) the plant catches up the ticks that fell due, up
 to ``max_catch_up`` at once; a longer stall is a slip - the backlog beyond that is dropped, the
-simulation resumes from where it was, and the slip is counted and logged.  Lockstep mode: the plant is the time source:
+simulation resumes from where it was, and the slip is counted and logged.
+
+Lockstep mode: the plant is the time source:
 it publishes ``/clock`` and the state of tick k, and advances to tick k+1 only when the
 ``ServovalveCommand`` stamped with tick k arrives; if none comes within ``resend_s`` of wall
 time it publishes tick k again.

@@ -79,12 +79,8 @@ def load_run(path: str, topic: str = TOPIC_STATE) -> Run:
     """
     try:
         arrays = load_topic_arrays(path, topic, strict=True)
-    except KeyError:
-        raise CompareError(f'{path} has no {topic} topic') from None
-    except RecordingError as exc:
+    except RecordingError as exc:  # unreadable, corrupt, or without the topic
         raise CompareError(str(exc)) from None
-    except OSError as exc:
-        raise CompareError(f'cannot read {path}: {exc.strerror or exc}') from None
     if arrays['log_time_ns'].size == 0:
         raise CompareError(f'{path} has no {topic} messages')
     missing = [f for f, *_ in SIGNALS if f not in arrays]

@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import signal
 import sys
 import time
 from typing import List, Optional
@@ -27,6 +26,7 @@ from typing import List, Optional
 import yaml
 
 from eha_ros.recording.mcap_io import flatten, message_to_dict
+from eha_ros.recording.stop import StopRequest
 from eha_ros.recording.topics import message_class
 
 __all__ = ['main', 'format_yaml', 'csv_row']
@@ -69,23 +69,18 @@ def main(argv: Optional[List[str]] = None) -> int:
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
 
-    stop = {'requested': False}
-
-    def request_stop(signum, frame):
-        stop['requested'] = True
-
     rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
-    previous = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    stop = StopRequest()
     try:
         node = rclpy.create_node('eha_echo')
         deadline = time.monotonic() + max(0.0, args.timeout)
         types: List[str] = []
-        while not stop['requested']:
+        while not stop.requested:
             types = dict(node.get_topic_names_and_types()).get(topic, [])
             if types or time.monotonic() >= deadline:
                 break
             rclpy.spin_once(node, timeout_sec=0.1)
-        if stop['requested']:
+        if stop.requested:
             return 0
         if not types:
             print(f'{PROG}: error: topic {topic} did not appear within {args.timeout:g} s',
@@ -124,7 +119,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             state['count'] += 1
 
         node.create_subscription(cls, topic, on_message, qos)
-        while not stop['requested'] and (args.count is None or state['count'] < args.count):
+        while not stop.requested and (args.count is None or state['count'] < args.count):
             rclpy.spin_once(node, timeout_sec=0.1)
         return 0
     except BrokenPipeError:  # e.g. piped into `head`
@@ -132,8 +127,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 0
     finally:
         rclpy.try_shutdown()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        stop.restore()
 
 
 if __name__ == '__main__':

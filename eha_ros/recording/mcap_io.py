@@ -48,8 +48,9 @@ from eha_ros.recording.topics import normalize_type
 
 __all__ = ['PROFILE', 'SCHEMA_ENCODING', 'MESSAGE_ENCODING', 'RUN_METADATA_NAME',
            'ROSBAG2_METADATA_NAME', 'RecordingError', 'NotMcapError', 'TruncatedError',
-           'CorruptError', 'message_definition', 'type_hash', 'qos_profile_dict',
-           'qos_profiles_yaml', 'McapWriter', 'RecordedMessage', 'ChannelInfo', 'RecordingInfo',
+           'CorruptError', 'MissingTopicError', 'message_definition', 'type_hash',
+           'qos_profile_dict', 'qos_profiles_yaml', 'McapWriter', 'RecordedMessage',
+           'ChannelInfo', 'RecordingInfo',
            'McapReader', 'scan', 'iter_decoded', 'load_topic_arrays', 'message_to_dict',
            'flatten', 'count_sequence_gaps', 'SequenceGapCounter']
 
@@ -84,6 +85,13 @@ class NotMcapError(RecordingError):
 
 class TruncatedError(RecordingError):
     """The file ends before its footer (a writer was killed, or the file was cut)."""
+
+
+class MissingTopicError(RecordingError, KeyError):
+    """A recording has no channel on the topic asked for."""
+
+    def __str__(self):  # the message as given, not KeyError's quoted repr
+        return str(self.args[0]) if self.args else ''
 
 
 class CorruptError(RecordingError):
@@ -941,24 +949,30 @@ def load_topic_arrays(source, topic: str, *, strict: bool = False) -> Dict[str, 
 
     Raises
     ------
-    KeyError
-        If the recording has no channel ``topic``.
+    MissingTopicError
+        If the recording has no channel ``topic`` (a :class:`RecordingError` and a
+        ``KeyError``).
+    RecordingError
+        If the file cannot be read or is not a readable recording; the message names it.
     """
-    reader = McapReader(source, topics=[topic], strict=strict)
     columns: Dict[str, list] = {'log_time_ns': [], 'publish_time_ns': []}
     n = 0
-    for msg in reader:
-        flat = _time_fields(flatten(msg.message))
-        columns['log_time_ns'].append(msg.log_time_ns)
-        columns['publish_time_ns'].append(msg.publish_time_ns)
-        for key, value in flat.items():
-            if isinstance(value, list):
-                continue
-            columns.setdefault(key, [None] * n).append(value)
-        n += 1
+    try:
+        reader = McapReader(source, topics=[topic], strict=strict)
+        for msg in reader:
+            flat = _time_fields(flatten(msg.message))
+            columns['log_time_ns'].append(msg.log_time_ns)
+            columns['publish_time_ns'].append(msg.publish_time_ns)
+            for key, value in flat.items():
+                if isinstance(value, list):
+                    continue
+                columns.setdefault(key, [None] * n).append(value)
+            n += 1
+    except OSError as exc:
+        raise RecordingError(f'cannot read {_describe(source)}: {exc.strerror or exc}') from None
     if topic not in reader.channels:
-        raise KeyError(f'{_describe(source)} has no topic {topic} '
-                       f'(topics: {", ".join(sorted(reader.channels)) or "none"})')
+        raise MissingTopicError(f'{_describe(source)} has no topic {topic} '
+                                f'(topics: {", ".join(sorted(reader.channels)) or "none"})')
     out: Dict[str, np.ndarray] = {}
     for key, values in columns.items():
         sample = next((v for v in values if v is not None), None)

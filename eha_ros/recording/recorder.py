@@ -42,7 +42,6 @@ import argparse
 import datetime
 import os
 from pathlib import Path
-import signal
 import socket
 import sys
 import time
@@ -58,6 +57,7 @@ from rclpy.utilities import remove_ros_args
 
 from eha_ros.recording import topics as graph
 from eha_ros.recording.mcap_io import McapWriter, qos_profile_dict, SequenceGapCounter
+from eha_ros.recording.stop import StopRequest
 
 __all__ = ['Recorder', 'RecorderError', 'main']
 
@@ -278,13 +278,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     if args.duration is not None:
         overrides.append(Parameter('duration_s', value=float(args.duration)))
 
-    stop = {'requested': False}
-
-    def request_stop(signum, frame):
-        stop['requested'] = True
-
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    previous = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    stop = StopRequest()
     node = None
     try:
         try:
@@ -295,7 +290,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         deadline = (time.monotonic() + node.duration_s) if node.duration_s > 0 else None
-        while not stop['requested'] and rclpy.ok():
+        while not stop.requested and rclpy.ok():
             before = node.received
             executor.spin_once(timeout_sec=0.1)
             if deadline is not None and time.monotonic() >= deadline:
@@ -315,8 +310,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             node.close()
             node.destroy_node()
         rclpy.try_shutdown()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        stop.restore()
 
 
 if __name__ == '__main__':

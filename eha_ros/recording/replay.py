@@ -23,7 +23,6 @@ status 2.
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
 import time
 from typing import Dict, List, Optional
@@ -32,6 +31,7 @@ import yaml
 
 from eha_ros.recording import topics as graph
 from eha_ros.recording.mcap_io import McapReader, RecordingError, RecordingInfo, scan
+from eha_ros.recording.stop import StopRequest
 
 __all__ = ['main', 'select_topics', 'ReplayError']
 
@@ -111,8 +111,8 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _sleep_until(target: float, stop: dict) -> None:
-    while not stop['requested']:
+def _sleep_until(target: float, stop) -> None:
+    while not stop.requested:
         left = target - time.monotonic()
         if left <= 0:
             return
@@ -140,13 +140,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     from rclpy.signals import SignalHandlerOptions
     from rosgraph_msgs.msg import Clock
 
-    stop = {'requested': False}
-
-    def request_stop(signum, frame):
-        stop['requested'] = True
-
     rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
-    previous = {s: signal.signal(s, request_stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    stop = StopRequest()
     try:
         node = rclpy.create_node('eha_replay')
         publishers = {}
@@ -159,7 +154,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         if args.wait_for_subscribers > 0:
             deadline = time.monotonic() + args.wait_for_subscribers
             waiting = list(publishers.values())
-            while waiting and time.monotonic() < deadline and not stop['requested']:
+            while waiting and time.monotonic() < deadline and not stop.requested:
                 waiting = [p for p in waiting if p.get_subscription_count() == 0]
                 time.sleep(0.02)
             if waiting:
@@ -169,13 +164,13 @@ def main(argv: Optional[List[str]] = None) -> int:
 
         total = 0
         began = time.monotonic()
-        while not stop['requested']:
+        while not stop.requested:
             start = time.monotonic()
             first_log = None
             last_clock = None
             reader = McapReader(args.file, topics=list(selected), decode=False, strict=True)
             for msg in reader:
-                if stop['requested']:
+                if stop.requested:
                     break
                 if first_log is None:
                     first_log = msg.log_time_ns
@@ -200,8 +195,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 2
     finally:
         rclpy.try_shutdown()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        stop.restore()
 
 
 if __name__ == '__main__':

@@ -32,7 +32,8 @@ from eha_ros.physics import PlantParams, default_params, params_hash
 from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
 
 __all__ = ['DatabaseSpec', 'Database', 'DATABASES', 'FLUID_PARAMETERS', 'fluid_hash',
-           'build_database', 'load_database', 'cache_dir', 'get_database', 'DatabaseError']
+           'build_database', 'load_database', 'cache_dir', 'get_database', 'DatabaseError',
+           'random_wear', 'maps_at']
 
 #: Physics parameters the fluid-dynamic block (and so every map) depends on.  Overlap and
 #: clearance are inputs of the maps and are left out.
@@ -252,3 +253,23 @@ def main(argv=None) -> int:
 
 if __name__ == '__main__':
     sys.exit(main())
+
+
+def random_wear(n_maps: int, rng: np.random.Generator, wear=None):
+    """``(overlap_m, clearance_m)`` arrays: ``n_maps`` pairs drawn uniformly inside
+    :data:`WEAR_RANGES` from ``rng`` (overlap first), or the given ``wear`` pairs."""
+    if wear is not None:
+        lap, clr = (np.array(v, dtype=float) for v in zip(*wear))
+        return lap, clr
+    lap = rng.uniform(*WEAR_RANGES['overlap_m'], n_maps)
+    clr = rng.uniform(*WEAR_RANGES['radial_clearance_m'], n_maps)
+    return lap, clr
+
+
+def maps_at(xs_m, q_m3_s, overlap_m, clearance_m, params: PlantParams):
+    """One map per wear pair, from the reference's transient: a list of ``(xs_m, q_m3_s,
+    overlap_m, clearance_m, p12_pa)`` with ``p12_pa`` of shape ``(n_xs, n_q)``."""
+    r = transient_map(xs_m[:, None, None], q_m3_s[None, :, None], overlap_m[None, None, :],
+                      clearance_m[None, None, :], params=params)['p12_pa']
+    return [(xs_m, q_m3_s, float(overlap_m[m]), float(clearance_m[m]), r[:, :, m])
+            for m in range(overlap_m.size)]

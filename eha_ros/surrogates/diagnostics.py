@@ -56,6 +56,7 @@ from eha_ros.physics.maps import WEAR_RANGES
 
 from .base import SurrogateError, load_artefact, models_dir, save_artefact
 from .database import Database, fluid_hash, get_database
+from .nn import split_weights
 
 __all__ = ['WearEstimate', 'DiagnosticModel', 'load_diagnostic', 'estimate_wear',
            'estimate_wear_batch', 'estimate_wear_map', 'add_noise', 'curves_from_maps',
@@ -133,15 +134,13 @@ class DiagnosticModel:
     def from_data(cls, data, meta) -> 'DiagnosticModel':
         layout, xs, in_norm, out_norm, theta = (np.asarray(a, dtype=float) for a in data)
         sizes = [int(s) for s in layout]
-        weights = []
-        k = 0
-        for di, do in zip(sizes[:-1], sizes[1:]):
-            w = theta[k:k + di * do].reshape(di, do)
-            k += di * do
-            weights.append((w, theta[k:k + do]))
-            k += do
-        if k != theta.size or in_norm.shape != (2, sizes[0]) or xs.size + 1 != sizes[0]:
-            raise SurrogateError('diagnostic artefact: weights do not match their layout')
+        try:
+            weights = split_weights(theta, sizes)
+        except SurrogateError as exc:
+            raise SurrogateError(f'diagnostic artefact: {exc}') from None
+        if in_norm.shape != (2, sizes[0]) or xs.size + 1 != sizes[0]:
+            raise SurrogateError('diagnostic artefact: normalisation or spool grid do not '
+                                 'match the layer widths')
         return cls(xs, in_norm, out_norm, weights, meta)
 
 

@@ -63,7 +63,7 @@ from eha_ros.physics import PlantParams, default_params, params_hash
 from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
 
 from .base import FluidSurrogate, SurrogateError, models_dir, register_kernel, save_artefact
-from .database import FLOW_MAX_M3_S, fluid_hash, get_database
+from .database import FLOW_MAX_M3_S, fluid_hash, get_database, maps_at, random_wear
 
 __all__ = ['lut_kernel', 'axis_tables', 'make_lut', 'build_table', 'heldout_maps', 'map_errors',
            'build_artefact', 'GRID', 'AXES']
@@ -257,17 +257,11 @@ def heldout_maps(n_maps: int, seed: int = 0, params: PlantParams | None = None,
     """
     p = params if params is not None else default_params()
     rng = np.random.default_rng(seed)
-    if wear is None:
-        lap = rng.uniform(*WEAR_RANGES['overlap_m'], n_maps)
-        clr = rng.uniform(*WEAR_RANGES['radial_clearance_m'], n_maps)
-    else:
-        lap, clr = (np.array(v, dtype=float) for v in zip(*wear))
+    lap, clr = random_wear(n_maps, rng, wear)
     g = spool_grid(133, p.spool_stroke_m)
     xs = 0.5 * (g[1:] + g[:-1])
     q = np.sort(rng.uniform(-FLOW_MAX_M3_S, FLOW_MAX_M3_S, n_q))
-    r = transient_map(xs[:, None, None], q[None, :, None], lap[None, None, :],
-                      clr[None, None, :], params=p)['p12_pa']
-    return [(xs, q, float(lap[m]), float(clr[m]), r[:, :, m]) for m in range(lap.size)]
+    return maps_at(xs, q, lap, clr, p)
 
 
 def map_errors(model, maps) -> np.ndarray:

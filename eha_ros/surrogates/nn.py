@@ -57,14 +57,15 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from eha_ros.physics import PlantParams, default_params
-from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
+from eha_ros.physics.maps import spool_grid, transient_map
 
 from .base import SurrogateError, models_dir, register_kernel, save_artefact
-from .database import Database, fluid_hash, get_database
+from .database import Database, fluid_hash, get_database, maps_at, random_wear
 
 __all__ = ['INPUT_NAMES', 'INPUT_UNITS', 'MAX_WIDTH', 'mlp_kernel', 'mlp_numpy', 'pack',
-           'unpack', 'fit_inputs', 'fit_output', 'make_torch_mlp', 'torch_from_data',
-           'train_lm', 'train_adam_lbfgs', 'map_split', 'map_errors', 'offgrid_maps',
+           'unpack', 'split_weights', 'fit_inputs', 'fit_output', 'make_torch_mlp',
+           'torch_from_data', 'train_lm', 'train_adam_lbfgs', 'map_split', 'map_errors',
+           'offgrid_maps',
            'train_fluid_network', 'build_artefacts', 'NN_SETTINGS', 'NN2_SETTINGS']
 
 #: The kernel's inputs, in order, and their units.
@@ -162,14 +163,26 @@ def unpack(data) -> dict:
     layout, inputs, output, theta = (np.asarray(a, dtype=float) for a in data)
     n_layers = int(layout[1])
     sizes = [int(v) for v in layout[2:3 + n_layers]]
+    return {'sizes': sizes, 'inputs': inputs, 'output': output,
+            'weights': split_weights(theta, sizes)}
+
+
+def split_weights(theta, sizes) -> list:
+    """``[(W, b), ...]`` of a dense network with layer widths ``sizes`` from the flat
+    ``theta``: layer by layer ``W`` (row-major, ``d_in x d_out``) then ``b``.  Raises
+    :class:`SurrogateError` when the widths do not account for ``theta`` exactly."""
+    theta = np.asarray(theta, dtype=float)
     weights = []
     k = 0
     for di, do in zip(sizes[:-1], sizes[1:]):
-        w = theta[k:k + do * di].reshape(di, do)
-        k += do * di
+        w = theta[k:k + di * do].reshape(di, do)
+        k += di * do
         weights.append((w, theta[k:k + do]))
         k += do
-    return {'sizes': sizes, 'inputs': inputs, 'output': output, 'weights': weights}
+    if k != theta.size:
+        raise SurrogateError(f'{theta.size} weights for layer widths {list(sizes)} '
+                             f'(which need {k})')
+    return weights
 
 
 def pack(sizes, inputs, output, theta) -> tuple:
@@ -578,17 +591,9 @@ def offgrid_maps(n_maps: int, *, q_max_m3_s: float = 6e-5, n_q: int = 15, seed: 
     :data:`WEAR_RANGES` from ``seed`` (or at the given ``wear`` pairs), on the database spool
     grid and ``n_q`` flows over ``+-q_max_m3_s``."""
     p = params if params is not None else default_params()
-    rng = np.random.default_rng(seed)
-    if wear is None:
-        lap = rng.uniform(*WEAR_RANGES['overlap_m'], n_maps)
-        clr = rng.uniform(*WEAR_RANGES['radial_clearance_m'], n_maps)
-    else:
-        lap, clr = (np.array(v, dtype=float) for v in zip(*wear))
+    lap, clr = random_wear(n_maps, np.random.default_rng(seed), wear)
     xs = spool_grid(133, p.spool_stroke_m)
-    q = np.linspace(-q_max_m3_s, q_max_m3_s, n_q)
-    r = transient_map(xs[:, None, None], q[None, :, None], lap[None, None, :],
-                      clr[None, None, :], params=p)['p12_pa']
-    return [(xs, q, float(lap[m]), float(clr[m]), r[:, :, m]) for m in range(lap.size)]
+    return maps_at(xs, np.linspace(-q_max_m3_s, q_max_m3_s, n_q), lap, clr, p)
 
 
 def _summary(errs) -> dict:

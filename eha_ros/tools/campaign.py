@@ -55,43 +55,32 @@ def run_campaign(out: Path, scenarios=THESIS_SCENARIOS, models=MODELS, processes
     from eha_ros.testing import ros_environment
     from eha_ros.tools.diagnose import diagnose
 
-    out.mkdir(parents=True)
-    models = available_models(models)
-    runs, t_start = {}, time.monotonic()
     unknown = [v for v in valve_tests if v not in VALVES]
     if unknown:
         raise ParameterError(f'unknown valve {unknown[0]!r} (one of {", ".join(VALVES)})')
-    total = len(scenarios) * len(models) + len(valve_tests)
-    k = 0
     for sc in scenarios:
         get_scenario(sc)
-        for model in models:
-            k += 1
-            path = out / f'{sc}_{model}.mcap'
-            with ros_environment() as env:
-                r = run_graph(GraphConfig(scenario=sc, model=model, mode='lockstep',
-                                          record=str(path)),
-                              processes=processes, env=env, timeout_s=120)
-            runs[(sc, model)] = {'file': path.name, 'sim_s': r.sim_s,
-                                 'wall_s': round(r.wall_s, 2), 'ticks': int(r.state['tick'].size)}
-            progress(f'[{k:2d}/{total}] {sc:15s} {model:4s} {r.sim_s:5.2f} s simulated in '
-                     f'{r.wall_s:5.1f} s  -> {path.name}')
+    out.mkdir(parents=True)
+    models = available_models(models)
+    # (scenario, label, fluid model, plant parameters): the campaign, then the valve tests
+    jobs = ([(sc, model, model, {}) for sc in scenarios for model in models]
+            + [(valve_test_scenario, valve, 'hf', VALVES[valve]) for valve in valve_tests])
+    runs, t_start = {}, time.monotonic()
+    for k, (sc, label, model, plant) in enumerate(jobs, start=1):
+        path = out / f'{sc}_{label}.mcap'
+        with ros_environment() as env:
+            r = run_graph(GraphConfig(scenario=sc, model=model, mode='lockstep',
+                                      record=str(path), plant=dict(plant)),
+                          processes=processes, env=env, timeout_s=120)
+        runs[(sc, label)] = {'file': path.name, 'sim_s': r.sim_s, 'wall_s': round(r.wall_s, 2),
+                             'ticks': int(r.state['tick'].size)}
+        progress(f'[{k:2d}/{len(jobs)}] {sc:15s} {label:7s} {r.sim_s:5.2f} s simulated in '
+                 f'{r.wall_s:5.1f} s  -> {path.name}')
     from eha_ros.physics import load_params
     nominal = load_params()
     valve_results = {}
     for valve in valve_tests:
-        k += 1
-        path = out / f'{valve_test_scenario}_{valve}.mcap'
-        with ros_environment() as env:
-            r = run_graph(GraphConfig(scenario=valve_test_scenario, model='hf', mode='lockstep',
-                                      record=str(path), plant=dict(VALVES[valve])),
-                          processes=processes, env=env, timeout_s=120)
-        runs[(valve_test_scenario, valve)] = {'file': path.name, 'sim_s': r.sim_s,
-                                              'wall_s': round(r.wall_s, 2),
-                                              'ticks': int(r.state['tick'].size)}
-        progress(f'[{k:2d}/{total}] {valve_test_scenario:15s} {valve:7s} {r.sim_s:5.2f} s '
-                 f'simulated in {r.wall_s:5.1f} s  -> {path.name}')
-        d = diagnose(str(path))
+        d = diagnose(str(out / f'{valve_test_scenario}_{valve}.mcap'))
         d['true_radial_clearance_m'] = VALVES[valve].get('radial_clearance_m',
                                                          nominal.radial_clearance_m)
         d['true_overlap_m'] = VALVES[valve].get('overlap_supply_m', nominal.overlap_supply_m)

@@ -36,9 +36,9 @@ STATUS_DIVERGED, STATUS_VALVE_TEST = 3, 4
 LEVELS = ('OK', 'WARN', 'ERROR')
 
 
-def _valve_test_curves(a, keep):
+def _valve_test_curves(a):
     """``(q, xs, p12)`` of every complete curve of the valve test in the arrays ``a``."""
-    ends = keep & (a['status'] == STATUS_VALVE_TEST) & a.get(
+    ends = (a['status'] == STATUS_VALVE_TEST) & a.get(
         'valve_test_point_end', np.zeros(a['status'].size, dtype=bool))
     curves = []
     q_all = a['load_flow_m3_s'][ends]
@@ -58,19 +58,15 @@ def diagnose(path, params=None, window_s=None, skip_s=0.05, max_samples=400, met
     ``steady``."""
     try:
         a = load_topic_arrays(path, TOPIC_STATE, strict=True)
-    except KeyError:
-        raise ParameterError(f'{path} has no {TOPIC_STATE} topic') from None
-    except RecordingError as exc:
+    except RecordingError as exc:  # unreadable, corrupt, or without the topic
         raise ParameterError(str(exc)) from None
-    except OSError as exc:
-        raise ParameterError(f'cannot read {path}: {exc.strerror or exc}') from None
     needed = ('stamp_ns', 'spool_position_m', 'load_flow_m3_s', 'p12_pa')
     if a['log_time_ns'].size == 0 or any(k not in a for k in needed):
         raise ParameterError(f'{path}: no usable {TOPIC_STATE} samples')
     t = a['stamp_ns'] * 1e-9
     params = params or load_params()
     status = a.get('status')
-    curves = _valve_test_curves(a, np.ones(t.size, dtype=bool)) if status is not None else []
+    curves = _valve_test_curves(a) if status is not None else []
     if method == 'network' or (method == 'auto' and curves):
         if not curves:
             raise ParameterError(f'{path}: no complete valve-test curve (133 points at one '
