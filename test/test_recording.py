@@ -220,7 +220,7 @@ def test_round_trip_every_message_type_in_memory():
         assert channel.message_encoding == 'cdr' and channel.schema_encoding == 'ros2msg'
         profiles = yaml.safe_load(channel.metadata['offered_qos_profiles'])
         assert profiles[0]['reliability'] == 'reliable'
-        assert profiles[0]['history'] == 'keep_last' and profiles[0]['depth'] == 100
+        assert profiles[0]['history'] == 'keep_last' and profiles[0]['depth'] == 1000
         assert channel.metadata['topic_type_hash'].startswith('RIHS01_')
     bag = info.rosbag2_metadata()
     assert bag['version'] == 9 and bag['storage_identifier'] == 'mcap'

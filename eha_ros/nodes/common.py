@@ -24,9 +24,8 @@ __all__ = ['TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOPIC_HEALTH',
            'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'QOS', 'MODES', 'declare', 'declare_physics',
            'run_node', 'stamp_to_ns', 'ns_to_stamp']
 
-#: Every graph topic (names and QoS from :mod:`eha_ros.recording.topics`): reliable, last 100
-#: kept, volatile.  In lockstep one message per topic is in flight at a time; in realtime 100
-#: samples absorb a 0.1 s stall at 1 kHz.
+#: Every graph topic (names and QoS from :mod:`eha_ros.recording.topics`): reliable, last 1000
+#: kept, volatile: a reader outside the loop (recorder, health monitor) may lag 1 s at 1 kHz.
 QOS = graph_qos()
 
 #: Timing modes: wall-clock timers (a rig), or the plant paces everything through /clock.

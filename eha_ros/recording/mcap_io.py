@@ -226,7 +226,7 @@ def qos_profile_dict(qos=None) -> Dict[str, Any]:
     ----------
     qos : rclpy.qos.QoSProfile or dict, optional
         A profile (e.g. ``TopicEndpointInfo.qos_profile`` of a discovered publisher) or a dict
-        already in this layout; default: the graph's QoS (reliable, keep last 100, volatile).
+        already in this layout; default: the graph's QoS (reliable, keep last ``topics.QOS_DEPTH``, volatile).
     """
     if qos is None:
         from eha_ros.recording import topics

@@ -15,7 +15,10 @@ Topic                          Type                                   Rate
 ``/clock``                     ``rosgraph_msgs/msg/Clock``            1 kHz
 =============================  =====================================  ==========
 
-Every topic is reliable, keeps the last 100 samples and is volatile.
+Every topic is reliable, keeps the last 1000 samples and is volatile.  The depth is what a
+subscriber outside the loop (the recorder, the health monitor, a test's collector) may fall
+behind without losing a sample: 1 s at 1 kHz.  In lockstep the loop runs as fast as the
+controller answers, so a slower reader falls behind by however long it is slower.
 """
 
 from __future__ import annotations
@@ -60,7 +63,7 @@ RATES_HZ: Dict[str, float] = {
 
 #: QoS of every graph topic (names as ``rmw_qos_*_policy_to_str`` spells them).
 QOS_HISTORY = 'keep_last'
-QOS_DEPTH = 100
+QOS_DEPTH = 1000
 QOS_RELIABILITY = 'reliable'
 QOS_DURABILITY = 'volatile'
 
