@@ -81,14 +81,18 @@ class GraphConfig:
         test = ({'valve_test': True,
                  'valve_test_flows_m3_s': [float(q) for q in sc.valve_test_flows_m3_s]}
                 if sc.valve_test else {})
+        # state readers: controller, collector, health monitor, recorders; /clock readers: the
+        # command generator (its own subscription and its sim-time one), the controller's and
+        # the health monitor's sim time, recorders
+        readers = 2 + int(self.health) + self.recorders + int(bool(self.record))
         out = {
             'command_generator': dict(common, scenario=self.scenario, use_sim_time=sim),
             'controller': dict(common, params_file=self.params_file, use_sim_time=sim),
             'servovalve_plant': dict(common, model=self.model, dt_s=float(self.dt_s),
                                      seed=int(self.seed), params_file=self.params_file,
                                      duration_s=self.resolved_duration(),
-                                     start_subscribers=(2 + int(self.health) + self.recorders
-                                                        + int(bool(self.record))),
+                                     start_subscribers=readers,
+                                     start_clock_subscribers=readers + 1,
                                      **dict(test, **self.plant)),
         }
         if self.health:

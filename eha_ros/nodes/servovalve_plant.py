@@ -86,6 +86,10 @@ class ServovalvePlant(Node):
         self.start_subscribers = declare(self, 'start_subscribers', 1, 'lockstep: state '
                                          'subscribers to wait for before the first tick (the '
                                          'controller, plus recorders)', 1, 100)
+        self.start_clock_subscribers = declare(
+            self, 'start_clock_subscribers', 1, 'lockstep: /clock subscriptions to wait for '
+            'before the first tick (the command generator, plus every sim-time node and '
+            'recorder), so that none misses tick 0', 1, 100)
         valve_test = declare(self, 'valve_test', False, 'run the diagnostic valve test (map '
                              'sweep, jack clamped) before operating')
         flows = declare(self, 'valve_test_flows_m3_s', list(DEFAULT_TEST_FLOWS_M3_S),
@@ -262,9 +266,9 @@ class ServovalvePlant(Node):
     # lockstep ----------------------------------------------------------------------------
     def _ready(self) -> bool:
         """Everyone the loop needs has matched: a state reader (controller) answering with
-        servovalve commands and a clock reader (command generator)."""
+        servovalve commands, clock readers (command generator, sim-time nodes, recorders)."""
         return (self.state_pub.get_subscription_count() >= self.start_subscribers
-                and self.clock_pub.get_subscription_count() >= 1
+                and self.clock_pub.get_subscription_count() >= self.start_clock_subscribers
                 and self.count_publishers(TOPIC_SERVOVALVE) >= 1)
 
     def _on_watchdog(self):
