@@ -21,7 +21,7 @@ import numpy as np
 
 from eha_ros.harness import GraphConfig, run_graph
 from eha_ros.surrogates.base import models_dir
-from eha_ros.testing import ros_environment
+from eha_ros.isolation import ros_environment
 
 
 def _us(x, q):

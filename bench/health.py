@@ -17,17 +17,15 @@ import time
 
 import numpy as np
 
+from eha_ros.graph import LEVEL_NAMES as LEVELS, REFERENCE_SCENARIOS as SCENARIOS
 from eha_ros.physics import default_params, get_scenario, simulate
 from eha_ros.physics.maps import spool_grid, transient_map
 from eha_ros.physics.params import replace
 from eha_ros.surrogates.health import (HealthThresholds, InServiceEstimator, ValveTestEstimator,
                                        classify)
 
-SCENARIOS = ('step_0p1', 'step_0p01', 'ramp_0p1', 'ramp_0p01', 'sine_0p1_5pi', 'sine_0p1_10pi',
-             'sine_0p01_5pi', 'sine_0p01_10pi', 'sine_0p01_2pi')
 VALVES = {'nominal': (2.5e-6, 1e-6), 'clearance_4p5': (4.5e-6, 1e-6),
           'underlap_1': (2.5e-6, -1e-6), 'worn': (4.5e-6, -0.5e-6)}
-LEVELS = ('OK', 'WARN', 'ERROR')
 
 
 def main():

@@ -56,20 +56,20 @@ def _publish(duration_s: float, rate_hz: float, wait_s: float) -> dict:
     from rosgraph_msgs.msg import Clock
 
     from eha_ros.msg import ActuatorCommand, ActuatorState, HealthStatus, ServovalveCommand
-    from eha_ros.recording import topics
+    from eha_ros import graph
 
     rclpy.init()
     node = rclpy.create_node('bench_graph_publisher')
-    qos = topics.graph_qos()
+    qos = graph.graph_qos()
     pubs = {
-        topics.TOPIC_STATE: node.create_publisher(ActuatorState, topics.TOPIC_STATE, qos),
-        topics.TOPIC_COMMAND: node.create_publisher(ActuatorCommand, topics.TOPIC_COMMAND, qos),
-        topics.TOPIC_SERVOVALVE: node.create_publisher(ServovalveCommand,
-                                                       topics.TOPIC_SERVOVALVE, qos),
-        topics.TOPIC_DIAGNOSTICS: node.create_publisher(DiagnosticArray,
-                                                        topics.TOPIC_DIAGNOSTICS, qos),
-        topics.TOPIC_CLOCK: node.create_publisher(Clock, topics.TOPIC_CLOCK, qos),
-        topics.TOPIC_HEALTH: node.create_publisher(HealthStatus, topics.TOPIC_HEALTH, qos),
+        graph.TOPIC_STATE: node.create_publisher(ActuatorState, graph.TOPIC_STATE, qos),
+        graph.TOPIC_COMMAND: node.create_publisher(ActuatorCommand, graph.TOPIC_COMMAND, qos),
+        graph.TOPIC_SERVOVALVE: node.create_publisher(ServovalveCommand,
+                                                       graph.TOPIC_SERVOVALVE, qos),
+        graph.TOPIC_DIAGNOSTICS: node.create_publisher(DiagnosticArray,
+                                                        graph.TOPIC_DIAGNOSTICS, qos),
+        graph.TOPIC_CLOCK: node.create_publisher(Clock, graph.TOPIC_CLOCK, qos),
+        graph.TOPIC_HEALTH: node.create_publisher(HealthStatus, graph.TOPIC_HEALTH, qos),
     }
     deadline = time.monotonic() + wait_s
     while any(p.get_subscription_count() == 0 for p in pubs.values()):
@@ -89,9 +89,9 @@ def _publish(duration_s: float, rate_hz: float, wait_s: float) -> dict:
     diag.status = [status]
     health = HealthStatus(method='bench', message='ok', samples_used=1000)
     health_every = max(1, int(round(rate_hz / 10.0)))
-    every_tick = ((topics.TOPIC_CLOCK, clock), (topics.TOPIC_COMMAND, cmd),
-                  (topics.TOPIC_SERVOVALVE, sv), (topics.TOPIC_STATE, state),
-                  (topics.TOPIC_DIAGNOSTICS, diag))
+    every_tick = ((graph.TOPIC_CLOCK, clock), (graph.TOPIC_COMMAND, cmd),
+                  (graph.TOPIC_SERVOVALVE, sv), (graph.TOPIC_STATE, state),
+                  (graph.TOPIC_DIAGNOSTICS, diag))
 
     n_ticks = int(round(duration_s * rate_hz))
     counts = {t: 0 for t in pubs}
@@ -130,8 +130,8 @@ def _publish(duration_s: float, rate_hz: float, wait_s: float) -> dict:
             counts[topic] += 1
         if k % health_every == 0:
             health.header.stamp.sec, health.header.stamp.nanosec = sec, nsec
-            pubs[topics.TOPIC_HEALTH].publish(health)
-            counts[topics.TOPIC_HEALTH] += 1
+            pubs[graph.TOPIC_HEALTH].publish(health)
+            counts[graph.TOPIC_HEALTH] += 1
     wall = time.monotonic() - start
     for pub in pubs.values():
         pub.wait_for_all_acked(Duration(seconds=5.0))
@@ -151,14 +151,15 @@ def _replay_timing(path: Path, seconds: float, env: dict, cwd: Path) -> dict:
     from rclpy.signals import SignalHandlerOptions
 
     from eha_ros.msg import ActuatorState
-    from eha_ros.recording import topics
-    from eha_ros.recording.mcap_io import McapReader, McapWriter
+    from eha_ros import graph
+    from eha_ros.recording.reader import McapReader
+    from eha_ros.recording.writer import McapWriter
 
     # A file holding the first `seconds` of /eha/state, as recorded.
     clip = cwd / 'replay_clip.mcap'
     recorded = []
     with McapWriter(clip) as writer:
-        reader = McapReader(path, topics=[topics.TOPIC_STATE], decode=False, strict=True)
+        reader = McapReader(path, topics=[graph.TOPIC_STATE], decode=False, strict=True)
         for msg in reader:
             if recorded and msg.log_time_ns - recorded[0] > seconds * 1e9:
                 break
@@ -182,9 +183,9 @@ def _replay_timing(path: Path, seconds: float, env: dict, cwd: Path) -> dict:
         executor = SingleThreadedExecutor(context=context)
         executor.add_node(node)
         node.create_subscription(
-            ActuatorState, topics.TOPIC_STATE,
+            ActuatorState, graph.TOPIC_STATE,
             lambda data, info: received.append(info['received_timestamp']),
-            topics.graph_qos(depth=1000), raw=True)
+            graph.graph_qos(depth=1000), raw=True)
         replay = subprocess.Popen([str(BIN / 'eha-replay'), str(clip), '--no-clock',
                                    '--wait-for-subscribers', '10'], env=env, cwd=cwd,
                                   stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -234,8 +235,8 @@ def run_real_graph(env: dict, duration_s: float, rate_hz: float) -> dict:
 def run(duration_s: float = 60.0, rate_hz: float = 1000.0, replay_s: float = 10.0,
         graph: bool = False) -> dict:
     """Record ``duration_s`` of 1 kHz traffic and replay part of it; returns the figures."""
-    from eha_ros.recording.mcap_io import scan
-    from eha_ros.testing import ros_environment
+    from eha_ros.recording.reader import scan
+    from eha_ros.isolation import ros_environment
 
     with ros_environment() as env, tempfile.TemporaryDirectory(prefix='eha_bench_rec_') as tmp:
         env.pop('ROS_PYTHON_CHECK_FIELDS', None)   # field checks are a test aid, not a cost

@@ -14,7 +14,8 @@ Either way a collector node in this process records ``/eha/state``, ``/eha/comma
     result = run_graph(GraphConfig(scenario='step_0p1', model='hf', mode='lockstep'))
     result.state['jack_position_m']
 
-In a test, the ``eha_graph`` fixture does the same in an isolated ROS domain.
+In the tests, the ``eha_graph`` fixture (``test/conftest.py``) does the same in an isolated
+ROS domain.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ['GraphConfig', 'GraphResult', 'GraphError', 'run_graph', 'eha_graph']
+__all__ = ['GraphConfig', 'GraphResult', 'GraphError', 'run_graph']
 
 STATE_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_s',
                 'spool_position_m', 'flapper_position_m', 'p1_pa', 'p2_pa', 'p12_pa',
@@ -222,32 +223,35 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
               timeout_s: float = 300.0, log_dir: str | None = None) -> GraphResult:
     """Run ``config`` until the plant has simulated its duration; see the module docstring.
 
-    ``env`` (e.g. from :func:`eha_ros.testing.ros_environment`) sets ``ROS_DOMAIN_ID`` and
+    ``env`` (e.g. from :func:`eha_ros.isolation.ros_environment`) sets ``ROS_DOMAIN_ID`` and
     ``ROS_LOG_DIR``; default: the current environment.  Raises :class:`GraphError` when a node
     exits early or the run stalls for ``timeout_s``.
     """
     import rclpy
 
+    from eha_ros.graph import STATUS_DIVERGED
     from eha_ros.nodes.common import QOS, make_executor
 
     config = config or GraphConfig()
     env = dict(os.environ if env is None else env)
     duration_ns = round(config.resolved_duration() * 1e9)
     params = config.node_parameters()
-    context = rclpy.Context()
-    domain = int(env.get('ROS_DOMAIN_ID', '0'))
-    saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_LOG_DIR')}
-    os.environ.update({k: env[k] for k in saved if k in env})
-    rclpy.init(context=context, domain_id=domain)
-    executor = make_executor(context)
-    collector = _Collector(context, QOS)
-    executor.add_node(collector.node)
-    procs, nodes = {}, []
-    log_dir = Path(log_dir or tempfile.mkdtemp(prefix='eha_graph_'))
-    t0 = time.monotonic()
     if config.record and Path(config.record).exists():
         raise GraphError(f'{config.record} exists: refusing to overwrite it')
+    domain = int(env.get('ROS_DOMAIN_ID', '0'))
+    log_dir = Path(log_dir or tempfile.mkdtemp(prefix='eha_graph_'))
+    saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_LOG_DIR')}
+    procs, nodes = {}, []
+    context = rclpy.Context()
+    executor = collector = None
+    failure = None  # why a node failed, raised once everything is stopped
+    os.environ.update({k: env[k] for k in saved if k in env})
     try:
+        rclpy.init(context=context, domain_id=domain)
+        executor = make_executor(context)
+        collector = _Collector(context, QOS)
+        executor.add_node(collector.node)
+        t0 = time.monotonic()
         bindir = Path(sys.executable).parent
         if 'recorder' in params:  # a process of its own in either mode
             params = dict(params)
@@ -290,7 +294,7 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
             if states and (states[-1].header.stamp.sec * 1_000_000_000
                            + states[-1].header.stamp.nanosec) >= duration_ns:
                 break
-            if states and states[-1].status == 3:
+            if states and states[-1].status == STATUS_DIVERGED:
                 break  # diverged: the plant has stopped
             for name, (proc, _) in procs.items():
                 if proc.poll() is not None:
@@ -306,8 +310,7 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
         end = time.monotonic() + 0.2
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.02)
-        wall = time.monotonic() - t0
-        return collector.result(config, wall)
+        result = collector.result(config, time.monotonic() - t0)
     finally:
         for name, (proc, out) in procs.items():
             if proc.poll() is None:
@@ -320,23 +323,29 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
                 proc.wait()
             out.close()
         rec = procs.get('recorder')
-        if rec is not None and rec[0].returncode != 0 and sys.exc_info()[0] is None:
-            raise GraphError(f'recorder exited with status {rec[0].returncode}: '
-                             + _tail(log_dir / 'recorder.log'))
+        if rec is not None and rec[0].returncode != 0:
+            failure = (f'recorder exited with status {rec[0].returncode}: '
+                       + _tail(log_dir / 'recorder.log'))
         for node in nodes:
-            executor.remove_node(node)
+            if executor is not None:
+                executor.remove_node(node)
             close = getattr(node, 'close', None)
             if close:
                 close()
             node.destroy_node()
-        collector.node.destroy_node()
-        executor.shutdown()
+        if collector is not None:
+            collector.node.destroy_node()
+        if executor is not None:
+            executor.shutdown()
         rclpy.try_shutdown(context=context)
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)
             else:
                 os.environ[k] = v
+    if failure is not None:  # reached only when the run itself succeeded
+        raise GraphError(failure)
+    return result
 
 
 def _tail(path: Path, n: int = 3) -> str:
@@ -345,18 +354,3 @@ def _tail(path: Path, n: int = 3) -> str:
     except OSError:
         return ''
     return ' | '.join(lines[-n:])
-
-
-try:
-    import pytest
-
-    @pytest.fixture
-    def eha_graph(ros_env):
-        """``eha_graph(processes=True, **GraphConfig fields) -> GraphResult`` in this test's
-        own ROS domain."""
-        def run(processes: bool = True, timeout_s: float = 120.0, **fields):
-            return run_graph(GraphConfig(**fields), processes=processes, env=ros_env,
-                             timeout_s=timeout_s, log_dir=ros_env.get('ROS_LOG_DIR'))
-        return run
-except ImportError:  # pytest is a test dependency only
-    pass

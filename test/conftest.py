@@ -9,8 +9,8 @@ import os
 
 import pytest
 
-from eha_ros.harness import eha_graph  # noqa: F401  (fixture: the node graph in ros_env)
-from eha_ros.testing import ros_environment
+from eha_ros.harness import GraphConfig, run_graph
+from eha_ros.isolation import ros_environment
 
 # Type and range checks on message field assignment. The generated message modules read this
 # when first imported, so it is set before any test imports them.
@@ -31,3 +31,13 @@ def ros_env(monkeypatch):
             if os.environ.get(key) != value:
                 monkeypatch.setenv(key, value)
         yield env
+
+
+@pytest.fixture
+def eha_graph(ros_env):
+    """``eha_graph(processes=True, **GraphConfig fields) -> GraphResult``: the node graph
+    (:func:`eha_ros.harness.run_graph`) in this test's own ROS domain."""
+    def run(processes: bool = True, timeout_s: float = 120.0, **fields):
+        return run_graph(GraphConfig(**fields), processes=processes, env=ros_env,
+                         timeout_s=timeout_s, log_dir=ros_env.get('ROS_LOG_DIR'))
+    return run

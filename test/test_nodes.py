@@ -225,3 +225,41 @@ def test_loop_with_each_surrogate_is_stable_and_matches_its_physics_run(eha_grap
     ref = simulate(default_params(), 'step_0p1', duration_s=0.2, controller_period_s=1e-3,
                    record_dt_s=None, fluid=load_surrogate(model))
     assert_array_equal(x, ref['jack_position_m'][:x.size])
+
+
+def test_vocabulary_codes_equal_the_message_constants():
+    """The graph's vocabulary (``eha_ros.graph``) is what the generated messages and the
+    scenario file say: status and level codes, scenario names, node names."""
+    from eha_ros import graph
+    from eha_ros.msg import ActuatorState, HealthStatus
+    from eha_ros.physics import get_scenario
+    for k, name in enumerate(graph.STATUS_NAMES):
+        assert getattr(ActuatorState, f'STATUS_{name}') == getattr(graph, f'STATUS_{name}') == k
+    for k, name in enumerate(graph.LEVEL_NAMES):
+        assert getattr(HealthStatus, f'LEVEL_{name}') == getattr(graph, f'LEVEL_{name}') == k
+    for name in graph.REFERENCE_SCENARIOS:
+        assert get_scenario(name).duration_s > 0
+    assert set(graph.REFERENCE_MODELS) <= set(graph.MODELS)
+    for node in graph.NODES:
+        assert (BIN / node).is_file(), node
+
+
+def test_run_graph_restores_everything_when_a_node_fails(ros_env, monkeypatch, tmp_path):
+    """A node refusing its parameters in one-process mode, or an output that exists, raises
+    GraphError / ParameterError with the environment restored and no context left running."""
+    import os
+
+    from eha_ros.harness import GraphConfig, GraphError, run_graph
+    from eha_ros.physics import ParameterError
+    env = dict(ros_env)
+    monkeypatch.setenv('ROS_DOMAIN_ID', '0')
+    before = dict(os.environ)
+    exists = tmp_path / 'run.mcap'
+    exists.write_bytes(b'keep')
+    with pytest.raises(GraphError, match='exists'):
+        run_graph(GraphConfig(duration_s=0.01, record=str(exists)), env=env)
+    assert exists.read_bytes() == b'keep' and dict(os.environ) == before
+    with pytest.raises(ParameterError, match='radial_clearance_m'):
+        run_graph(GraphConfig(duration_s=0.01, plant={'radial_clearance_m': 0.0}),
+                  processes=False, env=env)
+    assert dict(os.environ) == before

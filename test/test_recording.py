@@ -24,7 +24,8 @@ from numpy.testing import assert_allclose
 import pytest
 import yaml
 
-from eha_ros.recording import mcap_io, topics
+from eha_ros import graph
+from eha_ros.recording import mcap_io
 from eha_ros.recording.mcap_io import (CorruptError, McapReader, McapWriter, NotMcapError,
                                        scan, TruncatedError)
 from eha_ros.testing import sample_message
@@ -76,12 +77,12 @@ def _clock(t_ns: int):
 
 def graph_sample(topic: str, seed: int = 0):
     """A distinctive message of the topic's type (every field non-default)."""
-    type_name = topics.TOPICS[topic]
+    type_name = graph.TOPICS[topic]
     if type_name.startswith('diagnostic_msgs/'):
         return _diagnostics(seed)
     if type_name.startswith('rosgraph_msgs/'):
         return _clock(1_700_000_000_000_000_000 + seed * 1_000_000)
-    msg = sample_message(topics.message_class(type_name), seed=seed)
+    msg = sample_message(graph.message_class(type_name), seed=seed)
     if hasattr(msg, 'tick'):
         msg.tick = seed
     return msg
@@ -99,7 +100,7 @@ def _state(t_ns: int, tick: int, model: str = 'hf', jack=0.0, p12=0.0, spool=0.0
 def _write_states(path, times_ns, jack, p12, spool, model):
     with McapWriter(path) as writer:
         for i, t in enumerate(times_ns):
-            writer.write_message(topics.TOPIC_STATE,
+            writer.write_message(graph.TOPIC_STATE,
                                  _state(t, i, model, jack[i], p12[i], spool[i]),
                                  log_time_ns=int(t))
 
@@ -193,13 +194,13 @@ def test_round_trip_every_message_type_in_memory():
     sent = []
     with McapWriter(buf, chunk_size=2048, run_info={'case': 'round trip'}) as writer:
         for i in range(20):
-            for topic in topics.TOPICS:
+            for topic in graph.TOPICS:
                 msg = graph_sample(topic, seed=i)
                 t = 1_000_000_000 + i * 1_000_000 + len(sent)
                 writer.write_message(topic, msg, log_time_ns=t, publish_time_ns=t - 7,
                                      sequence=i + 1)
                 sent.append((topic, t, msg))
-        writer.lost_counts[topics.TOPIC_STATE] = 3
+        writer.lost_counts[graph.TOPIC_STATE] = 3
     data = buf.getvalue()
 
     reader = McapReader(io.BytesIO(data), strict=True)
@@ -208,13 +209,13 @@ def test_round_trip_every_message_type_in_memory():
     assert len(received) == len(sent)
     for (topic, t, msg), rec in zip(sent, received):
         assert rec.topic == topic
-        assert rec.type_name == topics.TOPICS[topic]
+        assert rec.type_name == graph.TOPICS[topic]
         assert (rec.log_time_ns, rec.publish_time_ns) == (t, t - 7)
         assert _fields(rec.message) == _fields(msg), topic
 
     info = scan(data, strict=True)
     assert info.complete and info.chunks > 1
-    assert info.topics == topics.TOPICS
+    assert info.topics == graph.TOPICS
     assert all(n == 20 for n in info.message_counts.values())
     for topic, channel in info.channels.items():
         assert channel.message_encoding == 'cdr' and channel.schema_encoding == 'ros2msg'
@@ -226,9 +227,9 @@ def test_round_trip_every_message_type_in_memory():
     assert bag['version'] == 9 and bag['storage_identifier'] == 'mcap'
     assert bag['message_count'] == len(sent)
     assert {t['topic_metadata']['name']: t['message_count']
-            for t in bag['topics_with_message_count']} == {t: 20 for t in topics.TOPICS}
-    assert info.lost_messages()[topics.TOPIC_STATE] == 3
-    assert info.lost_messages()[topics.TOPIC_CLOCK] == 0
+            for t in bag['topics_with_message_count']} == {t: 20 for t in graph.TOPICS}
+    assert info.lost_messages()[graph.TOPIC_STATE] == 3
+    assert info.lost_messages()[graph.TOPIC_CLOCK] == 0
     assert info.run_info() == {'case': 'round trip'}
 
     # The file is standard MCAP: the reference reader decodes it through its summary.
@@ -248,7 +249,7 @@ def test_topic_arrays_for_analysis(tmp_path):
     t = 5_000_000_000 + np.arange(50) * 1_000_000
     x = np.sin(np.arange(50) / 7.0)
     _write_states(buf, t, x, 1e5 * x, 1e-4 * x, 'lut')
-    arrays = mcap_io.load_topic_arrays(buf.getvalue(), topics.TOPIC_STATE)
+    arrays = mcap_io.load_topic_arrays(buf.getvalue(), graph.TOPIC_STATE)
     np.testing.assert_array_equal(arrays['stamp_ns'], t)
     np.testing.assert_array_equal(arrays['jack_position_m'], x)
     np.testing.assert_array_equal(arrays['p12_pa'], 1e5 * x)
@@ -256,12 +257,12 @@ def test_topic_arrays_for_analysis(tmp_path):
     assert arrays['jack_position_m'].dtype == np.float64
     assert set(arrays['model']) == {'lut'}
     with pytest.raises(KeyError, match='/eha/command'):
-        mcap_io.load_topic_arrays(buf.getvalue(), topics.TOPIC_COMMAND)
+        mcap_io.load_topic_arrays(buf.getvalue(), graph.TOPIC_COMMAND)
     with pytest.raises(mcap_io.RecordingError) as err:  # one error type for every caller
-        mcap_io.load_topic_arrays(buf.getvalue(), topics.TOPIC_COMMAND)
+        mcap_io.load_topic_arrays(buf.getvalue(), graph.TOPIC_COMMAND)
     assert str(err.value).startswith('input has no topic /eha/command (topics: /eha/state')
     with pytest.raises(mcap_io.RecordingError, match='cannot read .*missing.mcap'):
-        mcap_io.load_topic_arrays(tmp_path / 'missing.mcap', topics.TOPIC_STATE)
+        mcap_io.load_topic_arrays(tmp_path / 'missing.mcap', graph.TOPIC_STATE)
 
 
 def test_writer_refuses_to_overwrite(tmp_path):
@@ -280,7 +281,7 @@ def _chunked_file(n_messages=1000, per_chunk=50):
     buf = io.BytesIO()
     with McapWriter(buf, chunk_size=1 << 30) as writer:
         for i in range(n_messages):
-            writer.write_message(topics.TOPIC_STATE, _state(i * 1_000_000, i, jack=i * 1e-3),
+            writer.write_message(graph.TOPIC_STATE, _state(i * 1_000_000, i, jack=i * 1e-3),
                                  log_time_ns=i * 1_000_000)
             if (i + 1) % per_chunk == 0:
                 writer.flush()
@@ -313,7 +314,7 @@ def test_truncated_file_reads_up_to_last_complete_chunk(fraction):
     with pytest.raises(TruncatedError):
         list(McapReader(data[:cut], strict=True))
     info = scan(data[:cut])
-    assert not info.complete and info.message_counts[topics.TOPIC_STATE] == len(ticks)
+    assert not info.complete and info.message_counts[graph.TOPIC_STATE] == len(ticks)
 
 
 def test_unclosed_writer_leaves_readable_file(tmp_path):
@@ -322,9 +323,9 @@ def test_unclosed_writer_leaves_readable_file(tmp_path):
     writer = McapWriter(path, chunk_size=4096)
     n = 0
     while writer.chunks_written < 4:  # until a fourth chunk is flushed, then one more message:
-        writer.write_message(topics.TOPIC_STATE, _state(n, n), log_time_ns=n)
+        writer.write_message(graph.TOPIC_STATE, _state(n, n), log_time_ns=n)
         n += 1
-    writer.write_message(topics.TOPIC_STATE, _state(n, n), log_time_ns=n)  # ... left open
+    writer.write_message(graph.TOPIC_STATE, _state(n, n), log_time_ns=n)  # ... left open
     n += 1
     ticks = [m.message.tick for m in McapReader(path)]
     assert 0 < len(ticks) < n and ticks == list(range(len(ticks)))
@@ -413,7 +414,7 @@ def test_replay_rejects_missing_topics(bad_inputs, tmp_path, capsys):
         writer.write_message('/chatter', _clock(5), log_time_ns=5)
     for args in ([str(other)],                                   # none of the graph topics
                  [str(good), '--topics', '/eha/no_such_topic'],  # unknown topic
-                 [str(good), '--topics', topics.TOPIC_COMMAND],  # graph topic not in file
+                 [str(good), '--topics', graph.TOPIC_COMMAND],  # graph topic not in file
                  [str(good), '--rate', '0']):
         assert replay.main(args) == 2, args
         _one_line_error(capsys.readouterr().err, 'eha-replay')
@@ -440,13 +441,13 @@ def test_recorder_records_every_graph_topic(ros_env, tmp_path):
     n = 300
     output = tmp_path / 'run.mcap'
     recorder = _start_recorder(output, ros_env, tmp_path)
-    sent = {t: [] for t in topics.TOPICS}
+    sent = {t: [] for t in graph.TOPICS}
     try:
         with ros_node('recording_test_publisher') as (node, _):
             # Keep every sample until acknowledged: the test is about the recorder.
             qos = QoSProfile(depth=n, reliability=ReliabilityPolicy.RELIABLE)
-            pubs = {t: node.create_publisher(topics.message_class(ty), t, qos)
-                    for t, ty in topics.TOPICS.items()}
+            pubs = {t: node.create_publisher(graph.message_class(ty), t, qos)
+                    for t, ty in graph.TOPICS.items()}
             _wait_matched(pubs.values())
             for i in range(n):
                 for topic, pub in pubs.items():
@@ -462,21 +463,21 @@ def test_recorder_records_every_graph_topic(ros_env, tmp_path):
     assert 'recorder' in err and '0 lost' in err
 
     info = scan(output, strict=True)
-    assert info.message_counts == {t: n for t in topics.TOPICS}
-    assert info.lost_messages() == {t: 0 for t in topics.TOPICS}
+    assert info.message_counts == {t: n for t in graph.TOPICS}
+    assert info.lost_messages() == {t: 0 for t in graph.TOPICS}
     run = info.run_info()
-    assert run['missed_at_start'] == {t: 0 for t in topics.TOPICS}
+    assert run['missed_at_start'] == {t: 0 for t in graph.TOPICS}
     assert set(run['loss_detection'].values()) == {'publication_sequence_number'}
-    assert info.rosbag2_metadata()['message_count'] == n * len(topics.TOPICS)
+    assert info.rosbag2_metadata()['message_count'] == n * len(graph.TOPICS)
     for topic, channel in info.channels.items():
         profiles = yaml.safe_load(channel.metadata['offered_qos_profiles'])
         assert profiles and all(p['reliability'] == 'reliable' for p in profiles)
-        assert channel.metadata['topic_type_hash'] == mcap_io.type_hash(topics.TOPICS[topic])
-    received = {t: [] for t in topics.TOPICS}
+        assert channel.metadata['topic_type_hash'] == mcap_io.type_hash(graph.TOPICS[topic])
+    received = {t: [] for t in graph.TOPICS}
     for rec in McapReader(output, strict=True):
         received[rec.topic].append(_fields(rec.message))
         assert rec.sequence == len(received[rec.topic])
-    for topic in topics.TOPICS:
+    for topic in graph.TOPICS:
         assert received[topic] == [_fields(m) for m in sent[topic]], topic
 
 
@@ -504,11 +505,11 @@ def test_recorder_counts_messages_lost_while_stalled(ros_env, tmp_path):
     from eha_ros.msg import ActuatorState
 
     output = tmp_path / 'stalled.mcap'
-    recorder = _start_recorder(output, ros_env, tmp_path, '--topics', topics.TOPIC_STATE)
+    recorder = _start_recorder(output, ros_env, tmp_path, '--topics', graph.TOPIC_STATE)
     published = 0
     try:
         with ros_node('recording_test_burst') as (node, _):
-            pub = node.create_publisher(ActuatorState, topics.TOPIC_STATE,
+            pub = node.create_publisher(ActuatorState, graph.TOPIC_STATE,
                                         QoSProfile(depth=1,
                                                    reliability=ReliabilityPolicy.RELIABLE))
             _wait_matched([pub])
@@ -535,10 +536,10 @@ def test_recorder_counts_messages_lost_while_stalled(ros_env, tmp_path):
     assert recorder.returncode == 0, err
 
     info = scan(output, strict=True)
-    lost = info.lost_messages()[topics.TOPIC_STATE]
-    recorded = info.message_counts[topics.TOPIC_STATE]
-    missed = info.run_info()['missed_at_start'][topics.TOPIC_STATE]
-    ticks = mcap_io.load_topic_arrays(output, topics.TOPIC_STATE)['tick']
+    lost = info.lost_messages()[graph.TOPIC_STATE]
+    recorded = info.message_counts[graph.TOPIC_STATE]
+    missed = info.run_info()['missed_at_start'][graph.TOPIC_STATE]
+    ticks = mcap_io.load_topic_arrays(output, graph.TOPIC_STATE)['tick']
     assert lost > 0
     assert recorded + lost + missed == published
     assert np.all(np.diff(ticks) >= 1)
@@ -552,9 +553,9 @@ def test_recorder_counts_messages_lost_while_stalled(ros_env, tmp_path):
 def test_echo_prints_live_messages(ros_env, tmp_path):
     from eha_ros.msg import ActuatorState
 
-    expected = graph_sample(topics.TOPIC_STATE, seed=4)
+    expected = graph_sample(graph.TOPIC_STATE, seed=4)
     with ros_node('recording_test_echo_source') as (node, _):
-        pub = node.create_publisher(ActuatorState, topics.TOPIC_STATE, topics.graph_qos())
+        pub = node.create_publisher(ActuatorState, graph.TOPIC_STATE, graph.graph_qos())
         stop = threading.Event()
 
         def publish():
@@ -567,7 +568,7 @@ def test_echo_prints_live_messages(ros_env, tmp_path):
         try:
             common = dict(env=ros_env, cwd=tmp_path, text=True, capture_output=True,
                           timeout=PROCESS_TIMEOUT_S)
-            yaml_run = subprocess.run([str(BIN / 'eha-echo'), topics.TOPIC_STATE, '--count', '3',
+            yaml_run = subprocess.run([str(BIN / 'eha-echo'), graph.TOPIC_STATE, '--count', '3',
                                        '--timeout', str(DISCOVERY_TIMEOUT_S)], **common)
             csv_run = subprocess.run([str(BIN / 'eha-echo'), 'eha/state', '--csv', '--count',
                                       '2', '--timeout', str(DISCOVERY_TIMEOUT_S)], **common)
@@ -610,20 +611,20 @@ def test_replay_republishes_in_order_with_clock(ros_env, tmp_path):
     with McapWriter(path) as writer:
         for i in range(n):
             t = t0 + i * spacing_ns
-            writer.write_message(topics.TOPIC_STATE, _state(t, i, jack=i * 1e-3),
+            writer.write_message(graph.TOPIC_STATE, _state(t, i, jack=i * 1e-3),
                                  log_time_ns=t)
             cmd = ActuatorCommand(position_setpoint_m=i * 1e-3)
-            writer.write_message(topics.TOPIC_COMMAND, cmd, log_time_ns=t + 1000)
+            writer.write_message(graph.TOPIC_COMMAND, cmd, log_time_ns=t + 1000)
 
     got = {'state': [], 'command': [], 'clock': []}
     with ros_node('recording_test_replay_sink') as (node, executor):
         qos = QoSProfile(depth=1000)
-        node.create_subscription(ActuatorState, topics.TOPIC_STATE,
+        node.create_subscription(ActuatorState, graph.TOPIC_STATE,
                                  lambda m: got['state'].append(m.tick), qos)
-        node.create_subscription(ActuatorCommand, topics.TOPIC_COMMAND,
+        node.create_subscription(ActuatorCommand, graph.TOPIC_COMMAND,
                                  lambda m: got['command'].append(m.position_setpoint_m), qos)
         node.create_subscription(
-            Clock, topics.TOPIC_CLOCK,
+            Clock, graph.TOPIC_CLOCK,
             lambda m: got['clock'].append(m.clock.sec * 1_000_000_000 + m.clock.nanosec), qos)
         replay = subprocess.Popen(
             [str(BIN / 'eha-replay'), str(path), '--wait-for-subscribers',

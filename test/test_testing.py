@@ -3,7 +3,7 @@
 import os
 from pathlib import Path
 
-from eha_ros.testing import allocate_domain_id, DOMAIN_IDS, ros_environment
+from eha_ros.isolation import allocate_domain_id, DOMAIN_IDS, ros_environment
 
 
 def test_domain_ids_are_exclusive_until_released(tmp_path):

@@ -17,19 +17,16 @@ from rclpy.node import Node
 from eha_ros.physics import ParameterError
 from eha_ros.physics.params import SPEC_BY_NAME
 
-from eha_ros.recording.topics import (TOPIC_CLOCK, TOPIC_COMMAND, TOPIC_DIAGNOSTICS,
-                                      TOPIC_HEALTH, TOPIC_SERVOVALVE, TOPIC_STATE, graph_qos)
+from eha_ros.graph import (MODES, TOPIC_CLOCK, TOPIC_COMMAND, TOPIC_DIAGNOSTICS, TOPIC_HEALTH,
+                           TOPIC_SERVOVALVE, TOPIC_STATE, graph_qos)
 
 __all__ = ['TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOPIC_HEALTH',
            'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'QOS', 'MODES', 'declare', 'declare_physics',
            'run_node', 'stamp_to_ns', 'ns_to_stamp']
 
-#: Every graph topic (names and QoS from :mod:`eha_ros.recording.topics`): reliable, last 1000
+#: Every graph topic (names and QoS from :mod:`eha_ros.graph`): reliable, last 1000
 #: kept, volatile: a reader outside the loop (recorder, health monitor) may lag 1 s at 1 kHz.
 QOS = graph_qos()
-
-#: Timing modes: wall-clock timers (a rig), or the plant paces everything through /clock.
-MODES = ('realtime', 'lockstep')
 
 
 def subscribe(node: Node, msg_type, topic: str, callback):

@@ -23,6 +23,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
 
+from eha_ros.graph import LEVEL_ERROR, LEVEL_NAMES, LEVEL_OK, LEVEL_WARN
 from eha_ros.msg import ActuatorState, HealthStatus
 from eha_ros.physics import ParameterError, load_params
 from eha_ros.physics.valve_test import MAP_POINTS
@@ -33,7 +34,8 @@ from eha_ros.surrogates.health import (HealthThresholds, InServiceEstimator, Val
 from .common import (TOPIC_DIAGNOSTICS, TOPIC_HEALTH, TOPIC_STATE, advertise, declare,
                      run_node, stamp_to_ns, subscribe, validator)
 
-_LEVEL_BYTES = {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, 2: DiagnosticStatus.ERROR}
+_LEVEL_BYTES = {LEVEL_OK: DiagnosticStatus.OK, LEVEL_WARN: DiagnosticStatus.WARN,
+                LEVEL_ERROR: DiagnosticStatus.ERROR}
 
 
 class HealthMonitor(Node):
@@ -190,7 +192,7 @@ class HealthMonitor(Node):
         arr.status = [st]
         self.diag_pub.publish(arr)
         self.published += 1
-        self.get_logger().info(f'[{("OK", "WARN", "ERROR")[out.level]}] {out.message}')
+        self.get_logger().info(f'[{LEVEL_NAMES[out.level]}] {out.message}')
 
 
 def main(args=None) -> int:

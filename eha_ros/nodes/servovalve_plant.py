@@ -39,10 +39,10 @@ from eha_ros.physics.params import replace
 from eha_ros.physics.plant import S_P1, S_P2, S_XJ
 from eha_ros.physics.valve_test import ValveTest
 
+from eha_ros.graph import MODELS
+
 from .common import (MODES, TOPIC_CLOCK, TOPIC_SERVOVALVE, TOPIC_STATE, advertise, declare,
                      declare_physics, ns_to_stamp, run_node, stamp_to_ns, subscribe, validator)
-
-MODELS = ('hf', 'lut', 'ga', 'nn', 'nn2')
 
 #: Flows [m^3/s] of the valve test by default: three of the diagnostic grid (DB4).
 DEFAULT_TEST_FLOWS_M3_S = (2.5714285714285714e-05, 4.285714285714286e-05, 6.0e-05)

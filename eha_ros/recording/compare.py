@@ -39,8 +39,9 @@ from typing import Dict, List, NamedTuple, Optional, Sequence
 
 import numpy as np
 
-from eha_ros.recording.mcap_io import load_topic_arrays, RecordingError
-from eha_ros.recording.topics import TOPIC_STATE
+from eha_ros.graph import TOPIC_STATE
+from eha_ros.recording.arrays import load_topic_arrays
+from eha_ros.recording.definitions import RecordingError
 
 __all__ = ['SIGNALS', 'Run', 'load_run', 'relative_error', 'compare_runs', 'plot_runs', 'main']
 

@@ -25,9 +25,9 @@ from typing import List, Optional
 
 import yaml
 
-from eha_ros.recording.mcap_io import flatten, message_to_dict
+from eha_ros.graph import message_class
+from eha_ros.recording.arrays import flatten, message_to_dict
 from eha_ros.recording.stop import StopRequest
-from eha_ros.recording.topics import message_class
 
 __all__ = ['main', 'format_yaml', 'csv_row']
 

@@ -55,9 +55,10 @@ from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-from eha_ros.recording import topics as graph
-from eha_ros.recording.mcap_io import McapWriter, qos_profile_dict, SequenceGapCounter
+from eha_ros import graph
+from eha_ros.recording.definitions import qos_profile_dict, SequenceGapCounter
 from eha_ros.recording.stop import StopRequest
+from eha_ros.recording.writer import McapWriter
 
 __all__ = ['Recorder', 'RecorderError', 'main']
 

@@ -29,8 +29,9 @@ from typing import Dict, List, Optional
 
 import yaml
 
-from eha_ros.recording import topics as graph
-from eha_ros.recording.mcap_io import McapReader, RecordingError, RecordingInfo, scan
+from eha_ros import graph
+from eha_ros.recording.definitions import RecordingError
+from eha_ros.recording.reader import McapReader, RecordingInfo, scan
 from eha_ros.recording.stop import StopRequest
 
 __all__ = ['main', 'select_topics', 'ReplayError']

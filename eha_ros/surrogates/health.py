@@ -24,14 +24,13 @@ from typing import Callable
 
 import numpy as np
 
+from eha_ros.graph import LEVEL_ERROR as ERROR, LEVEL_OK as OK, LEVEL_WARN as WARN
 from eha_ros.physics import PlantParams, default_params
 from eha_ros.physics.maps import WEAR_RANGES, steady_map
 from eha_ros.physics.params import ParameterError, read_yaml
 
 __all__ = ['HealthEstimate', 'InServiceEstimator', 'ValveTestEstimator', 'HealthThresholds',
            'classify', 'OK', 'WARN', 'ERROR']
-
-OK, WARN, ERROR = 0, 1, 2
 
 
 @dataclasses.dataclass

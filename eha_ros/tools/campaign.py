@@ -27,12 +27,10 @@ import sys
 import time
 from pathlib import Path
 
+from eha_ros.graph import REFERENCE_MODELS, REFERENCE_SCENARIOS
 from eha_ros.harness import GraphConfig, GraphError, run_graph
 from eha_ros.physics import ParameterError, get_scenario
 
-THESIS_SCENARIOS = ('step_0p1', 'step_0p01', 'ramp_0p1', 'ramp_0p01', 'sine_0p1_5pi',
-                    'sine_0p1_10pi', 'sine_0p01_5pi', 'sine_0p01_10pi', 'sine_0p01_2pi')
-MODELS = ('hf', 'ga', 'nn', 'lut')
 
 #: Valves of the maintenance part: wear parameters set on the plant.
 VALVES = {
@@ -47,12 +45,12 @@ def available_models(models):
     return [m for m in models if m == 'hf' or (models_dir() / f'{m}.npz').is_file()]
 
 
-def run_campaign(out: Path, scenarios=THESIS_SCENARIOS, models=MODELS, processes=False,
-                 progress=print, valve_tests=tuple(VALVES), valve_test_scenario='valve_test',
-                 ) -> dict:
+def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=REFERENCE_MODELS,
+                 processes=False, progress=print, valve_tests=tuple(VALVES),
+                 valve_test_scenario='valve_test') -> dict:
     """Run, record, compare and report; returns the summary written to ``summary.json``."""
     from eha_ros.recording.compare import compare_runs, load_run, plot_runs
-    from eha_ros.testing import ros_environment
+    from eha_ros.isolation import ros_environment
     from eha_ros.tools.diagnose import diagnose
 
     unknown = [v for v in valve_tests if v not in VALVES]
@@ -157,8 +155,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='eha-campaign', description=__doc__.splitlines()[0])
     stamp = datetime.datetime.now().strftime('%Y%m%d-%H%M%S')
     ap.add_argument('--out', type=Path, default=Path('runs') / f'campaign-{stamp}')
-    ap.add_argument('--scenarios', default=','.join(THESIS_SCENARIOS))
-    ap.add_argument('--models', default=','.join(MODELS))
+    ap.add_argument('--scenarios', default=','.join(REFERENCE_SCENARIOS))
+    ap.add_argument('--models', default=','.join(REFERENCE_MODELS))
     ap.add_argument('--valve-tests', default=','.join(VALVES),
                     help='valves given the diagnostic valve test (empty: none)')
     ap.add_argument('--processes', action='store_true',
@@ -168,10 +166,10 @@ def main(argv=None) -> int:
         print(f'eha-campaign: error: {args.out} exists: refusing to overwrite it',
               file=sys.stderr)
         return 2
-    unknown = [m for m in args.models.split(',') if m not in MODELS]
+    unknown = [m for m in args.models.split(',') if m not in REFERENCE_MODELS]
     if unknown:
-        print(f'eha-campaign: error: unknown model {unknown[0]!r} (one of {", ".join(MODELS)})',
-              file=sys.stderr)
+        print(f'eha-campaign: error: unknown model {unknown[0]!r} '
+              f'(one of {", ".join(REFERENCE_MODELS)})', file=sys.stderr)
         return 2
     try:
         s = run_campaign(args.out, args.scenarios.split(','), args.models.split(','),

@@ -23,17 +23,14 @@ import sys
 
 import numpy as np
 
+from eha_ros.graph import LEVEL_NAMES as LEVELS, STATUS_DIVERGED, STATUS_VALVE_TEST, TOPIC_STATE
 from eha_ros.physics import ParameterError, load_params
 from eha_ros.physics.valve_test import MAP_POINTS
-from eha_ros.recording.mcap_io import RecordingError, load_topic_arrays
-from eha_ros.recording.topics import TOPIC_STATE
+from eha_ros.recording.arrays import load_topic_arrays
+from eha_ros.recording.definitions import RecordingError
 from eha_ros.surrogates.base import SurrogateError
 from eha_ros.surrogates.health import (HealthThresholds, InServiceEstimator, ValveTestEstimator,
                                        classify)
-
-STATUS_DIVERGED, STATUS_VALVE_TEST = 3, 4
-
-LEVELS = ('OK', 'WARN', 'ERROR')
 
 
 def _valve_test_curves(a):

@@ -1,0 +1,142 @@
+"""Recorded messages as plain data: nested dicts, flat ``{'a.b': value}`` rows, and one topic
+of a recording as numpy arrays for analysis (no ``rclpy`` needed)."""
+
+from __future__ import annotations
+
+from typing import Any, Dict, List
+
+import numpy as np
+
+from eha_ros.recording.definitions import (describe_source as _describe, MissingTopicError,
+                                           RecordingError)
+from eha_ros.recording.reader import McapReader
+
+__all__ = ['message_to_dict', 'flatten', 'load_topic_arrays']
+
+def _is_rclpy_message(msg) -> bool:
+    return hasattr(type(msg), 'get_fields_and_field_types')
+
+
+def _field_names(msg) -> List[str]:
+    if _is_rclpy_message(msg):
+        return list(msg.get_fields_and_field_types())
+    return list(getattr(msg, '__slots__', ()))
+
+
+def _is_message(value) -> bool:
+    return _is_rclpy_message(value) or (hasattr(value, '__slots__') and
+                                        not isinstance(value, (str, bytes)))
+
+
+def message_to_dict(msg) -> Any:
+    """A message (rclpy or decoded from a recording) as nested dicts and lists of plain values.
+
+    Floats stay floats, integers ints (also ``byte`` fields, which rclpy gives as ``bytes``);
+    sequences and arrays become lists.
+    """
+    if _is_rclpy_message(msg):
+        out = {}
+        for name, field_type in msg.get_fields_and_field_types().items():
+            value = getattr(msg, name)
+            if field_type == 'octet' and isinstance(value, bytes):  # rclpy: b'\x01' for a byte
+                value = value[0]
+            out[name] = message_to_dict(value)
+        return out
+    if _is_message(msg):
+        return {name: message_to_dict(getattr(msg, name)) for name in _field_names(msg)}
+    if isinstance(msg, (bytes, bytearray)):
+        return list(msg)
+    if isinstance(msg, np.ndarray):
+        return [message_to_dict(v) for v in msg.tolist()]
+    if isinstance(msg, (list, tuple)) or type(msg).__name__ == 'array':
+        return [v[0] if isinstance(v, bytes) and len(v) == 1 else message_to_dict(v)
+                for v in msg]
+    if isinstance(msg, np.generic):
+        return msg.item()
+    return msg
+
+
+def flatten(msg, prefix: str = '') -> Dict[str, Any]:
+    """Scalar fields of a message as ``{'a.b.c': value}`` (sequences as lists, in one key)."""
+    out: Dict[str, Any] = {}
+    data = message_to_dict(msg) if not isinstance(msg, dict) else msg
+
+    def walk(value, key):
+        if isinstance(value, dict):
+            for name, item in value.items():
+                walk(item, f'{key}.{name}' if key else name)
+        else:
+            out[key] = value
+
+    walk(data, prefix)
+    return out
+
+
+def _time_fields(flat: Dict[str, Any]) -> Dict[str, Any]:
+    """Fold ``x.sec``/``x.nanosec`` pairs into ``x_ns``; ``header.stamp`` becomes ``stamp_ns``
+    and ``header.frame_id`` is dropped."""
+    out: Dict[str, Any] = {}
+    for key, value in flat.items():
+        if key.endswith('.nanosec') and key[:-8] + '.sec' in flat:
+            continue
+        if key.endswith('.sec') and key[:-4] + '.nanosec' in flat:
+            base = key[:-4]
+            ns = int(value) * 1_000_000_000 + int(flat[base + '.nanosec'])
+            out['stamp_ns' if base == 'header.stamp' else base.replace('.', '_') + '_ns'] = ns
+            continue
+        if key == 'header.frame_id':
+            continue
+        out[key] = value
+    return out
+
+
+def load_topic_arrays(source, topic: str, *, strict: bool = False) -> Dict[str, np.ndarray]:
+    """Load one topic of a recording into numpy arrays, one per scalar field.
+
+    Returns
+    -------
+    dict
+        ``log_time_ns``, ``publish_time_ns`` (int64, ns); ``stamp_ns`` (int64, ns, from
+        ``header.stamp``); every other time ``x`` (``sec``/``nanosec``) as ``x_ns``; every
+        float field as float64, integer and bool fields as int64/bool, string fields as object
+        arrays, nested fields as ``a.b``. Sequence fields are left out.
+
+    Raises
+    ------
+    MissingTopicError
+        If the recording has no channel ``topic`` (a :class:`RecordingError` and a
+        ``KeyError``).
+    RecordingError
+        If the file cannot be read or is not a readable recording; the message names it.
+    """
+    columns: Dict[str, list] = {'log_time_ns': [], 'publish_time_ns': []}
+    n = 0
+    try:
+        reader = McapReader(source, topics=[topic], strict=strict)
+        for msg in reader:
+            flat = _time_fields(flatten(msg.message))
+            columns['log_time_ns'].append(msg.log_time_ns)
+            columns['publish_time_ns'].append(msg.publish_time_ns)
+            for key, value in flat.items():
+                if isinstance(value, list):
+                    continue
+                columns.setdefault(key, [None] * n).append(value)
+            n += 1
+    except OSError as exc:
+        raise RecordingError(f'cannot read {_describe(source)}: {exc.strerror or exc}') from None
+    if topic not in reader.channels:
+        raise MissingTopicError(f'{_describe(source)} has no topic {topic} '
+                                f'(topics: {", ".join(sorted(reader.channels)) or "none"})')
+    out: Dict[str, np.ndarray] = {}
+    for key, values in columns.items():
+        sample = next((v for v in values if v is not None), None)
+        if isinstance(sample, bool):
+            out[key] = np.asarray(values, dtype=bool)
+        elif isinstance(sample, int):
+            out[key] = np.asarray(values, dtype=np.int64 if max(values, default=0) < 2**63
+                                  else np.uint64)
+        elif isinstance(sample, float):
+            out[key] = np.asarray(values, dtype=np.float64)
+        else:
+            out[key] = np.asarray(values, dtype=object)
+    return out
