@@ -22,8 +22,9 @@ import time
 import numpy as np
 
 from eha_ros.physics import default_params
-from eha_ros.surrogates import diagnostics, nn
-from eha_ros.surrogates.base import load_surrogate
+from eha_ros.surrogates import diagnostics, nn, nn_train
+from eha_ros.surrogates.database import heldout_maps
+from eha_ros.surrogates.base import load_surrogate, relative_error
 from eha_ros.surrogates.database import get_database
 
 
@@ -73,21 +74,21 @@ def _nn_accuracy(s):
         test = [tuple(t) for t in meta['training']['split']['test_pairs']]
         for name in meta['training']['databases']:
             db = get_database(name)
-            out[f'{name}_held_out'] = _summary(nn.map_errors(s.data, nn.db_maps(db, test)))
+            out[f'{name}_held_out'] = _summary(nn_train.map_errors(s.data, nn_train.db_maps(db, test)))
         for q_max in (6e-5, 1.5e-5):
-            maps = nn.offgrid_maps(12, q_max_m3_s=q_max, n_q=15, seed=4242)
-            out[f'fresh_random_wear_q{q_max:.1e}'] = _summary(nn.map_errors(s.data, maps))
+            maps = heldout_maps(12, q_max_m3_s=q_max, n_q=15, seed=4242)
+            out[f'fresh_random_wear_q{q_max:.1e}'] = _summary(nn_train.map_errors(s.data, maps))
     else:
         db = get_database('DB5')
         cols = np.array(meta['training']['split']['test_flows'])
-        out['DB5_held_out_flows'] = _summary(nn.map_errors(s.data, [
+        out['DB5_held_out_flows'] = _summary(nn_train.map_errors(s.data, [
             (db.xs_m, db.q_m3_s[cols], db.overlap_m[0], db.clearance_m[0],
              db.p12_pa[:, cols, 0, 0])]))
         # a fresh nominal map at flows between the database's
         from eha_ros.physics.maps import transient_map
         q_mid = 0.5 * (db.q_m3_s[1:] + db.q_m3_s[:-1])[::4]
         fresh = transient_map(db.xs_m[:, None], q_mid[None, :])['p12_pa']
-        out['fresh_flows_between_grid'] = _summary(nn.map_errors(s.data, [
+        out['fresh_flows_between_grid'] = _summary(nn_train.map_errors(s.data, [
             (db.xs_m, q_mid, db.overlap_m[0], db.clearance_m[0], fresh)]))
     return out
 
@@ -102,7 +103,7 @@ def _sklearn(meta, max_iter, seed=0):
     first = next(iter(dbs.values()))
     train = [(i, j) for i in range(first.overlap_m.size) for j in range(first.clearance_m.size)
              if (i, j) not in set(test) | set(val)]
-    raw, y = zip(*(nn._points(db, train) for db in dbs.values()))
+    raw, y = zip(*(nn_train._points(db, train) for db in dbs.values()))
     raw, y = np.concatenate(raw), np.concatenate(y)
     inputs = nn.fit_inputs(raw, [0, 1, 2, 3], ['linear'] * 4)
     output = nn.fit_output(y)
@@ -111,16 +112,16 @@ def _sklearn(meta, max_iter, seed=0):
                        learning_rate_init=1e-3, tol=1e-7, n_iter_no_change=20,
                        random_state=seed)
     t0 = time.perf_counter()
-    reg.fit(nn._transform_inputs(inputs, raw), (y - output[0]) / output[1])
+    reg.fit(nn.transform_inputs(inputs, raw), (y - output[0]) / output[1])
     wall = time.perf_counter() - t0
     errs = {}
     for name, db in dbs.items():
         e = []
-        for xs, q, lap, clr, p12 in nn.db_maps(db, test):
+        for xs, q, lap, clr, p12 in nn_train.db_maps(db, test):
             g = np.stack([a.ravel() for a in np.broadcast_arrays(
                 xs[:, None], q[None, :], lap, clr)], axis=1)
-            pred = output[0] + output[1] * reg.predict(nn._transform_inputs(inputs, g))
-            e.append(np.linalg.norm(pred - p12.ravel()) / np.linalg.norm(p12))
+            pred = output[0] + output[1] * reg.predict(nn.transform_inputs(inputs, g))
+            e.append(relative_error(pred, p12.ravel()))
         errs[f'{name}_held_out'] = _summary(e)
     return {'train_time_s': round(wall, 1), 'iterations': int(reg.n_iter_),
             'max_iter': max_iter, 'errors': errs}
@@ -132,7 +133,7 @@ def _diag(seed=0):
         k: m.meta['training'][k] for k in ('algorithm', 'time_s', 'adam_steps', 'lbfgs_iters',
                                            'noise_augmentation')},
         'held_out_recorded': m.meta['errors'], 'alternatives': m.meta.get('alternatives')}
-    maps = nn.offgrid_maps(20, q_max_m3_s=6e-5, n_q=15, seed=9090)
+    maps = heldout_maps(20, q_max_m3_s=6e-5, n_q=15, seed=9090)
     curves = np.concatenate([p12.T for *_, p12 in maps])
     q = np.concatenate([mq for _, mq, *_ in maps])
     wear = np.concatenate([np.tile([clr, lap], (mq.size, 1)) for _, mq, lap, clr, _ in maps])

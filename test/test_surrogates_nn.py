@@ -12,8 +12,10 @@ import pytest
 from eha_ros.physics import default_params
 from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
 from eha_ros.physics.params import replace
-from eha_ros.surrogates import diagnostics, nn
-from eha_ros.surrogates.base import FluidSurrogate, SurrogateError, load_surrogate
+from eha_ros.surrogates import diagnostics, nn, nn_train, training
+from eha_ros.surrogates.base import (FluidSurrogate, SurrogateError, load_surrogate,
+                                     relative_error)
+from eha_ros.surrogates.database import heldout_maps
 
 RNG = np.random.default_rng(20240611)
 
@@ -32,7 +34,7 @@ def _random_packed(sizes, sources, transforms, rng, seed=0):
     raw = _random_inputs(500, rng)
     scales = [default_params().spool_stroke_m / math.sinh(4.0), None, None, None]
     inputs = nn.fit_inputs(raw, sources, transforms, [scales[s] for s in sources])
-    model = nn.make_torch_mlp(d_in=sizes[0], d_hidden=sizes[1:-1], seed=seed)
+    model = training.make_torch_mlp(d_in=sizes[0], d_hidden=sizes[1:-1], seed=seed)
     with torch.no_grad():  # non-zero biases too
         model.theta.add_(0.3 * torch.randn(model.theta.shape, dtype=torch.float64,
                                            generator=torch.Generator().manual_seed(seed)))
@@ -56,7 +58,7 @@ def test_kernel_matches_numpy_and_torch(sizes, sources, transforms):
     np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12 * scale)
     with torch.no_grad():
         model.eval()
-        y = model(torch.as_tensor(nn._transform_inputs(inputs, raw)))[:, 0].numpy()
+        y = model(torch.as_tensor(nn.transform_inputs(inputs, raw)))[:, 0].numpy()
     np.testing.assert_allclose(got, 2e6 + 1.3e8 * y, rtol=1e-6, atol=1e-6 * scale)
     # a 2-input network ignores the wear arguments
     if len(sources) == 2:
@@ -67,7 +69,7 @@ def test_jacobian_by_hand_matches_autograd():
     torch = pytest.importorskip('torch')
     from torch.func import jacrev, vmap
     for d_out in (1, 2):
-        model = nn.make_torch_mlp(d_in=3, d_hidden=[5, 4], d_out=d_out, seed=1)
+        model = training.make_torch_mlp(d_in=3, d_hidden=[5, 4], d_out=d_out, seed=1)
         x = torch.randn(7, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
         theta = model.theta.detach()
         ref = vmap(jacrev(lambda th, xi: model(xi[None], th)[0]), in_dims=(None, 0))(theta, x)
@@ -85,20 +87,20 @@ def _tiny_problem():
 def test_lm_fits_small_regression_and_beats_gradient_descent():
     torch = pytest.importorskip('torch')
     x, y = _tiny_problem()
-    lm = nn.make_torch_mlp(d_in=1, d_hidden=[6], seed=0)
-    start = nn._mse(lm, x, y)
-    hist = nn.train_lm(lm, x, y, epochs=60, threads=1)
-    loss_lm = nn._mse(lm, x, y)
+    lm = training.make_torch_mlp(d_in=1, d_hidden=[6], seed=0)
+    start = training._mse(lm, x, y)
+    hist = training.train_lm(lm, x, y, epochs=60, threads=1)
+    loss_lm = training._mse(lm, x, y)
     assert hist['epochs'] == 60 or hist['stop'] in ('mu_max', 'min_grad')
     assert loss_lm < 1e-6 * start
-    gd = nn.make_torch_mlp(d_in=1, d_hidden=[6], seed=0)
+    gd = training.make_torch_mlp(d_in=1, d_hidden=[6], seed=0)
     opt = torch.optim.SGD(gd.parameters(), lr=0.2)
     for _ in range(600):  # ten times LM's epochs
         opt.zero_grad()
         loss = torch.mean((gd(x) - y) ** 2)
         loss.backward()
         opt.step()
-    loss_gd = nn._mse(gd, x, y)
+    loss_gd = training._mse(gd, x, y)
     assert loss_lm < 1e-3 * loss_gd
 
 
@@ -108,12 +110,12 @@ def test_training_is_reproducible(algorithm):
     x, y = _tiny_problem()
     thetas = []
     for _ in range(2):
-        model = nn.make_torch_mlp(d_in=1, d_hidden=[4, 3], seed=7)
+        model = training.make_torch_mlp(d_in=1, d_hidden=[4, 3], seed=7)
         if algorithm == 'lm':
-            nn.train_lm(model, x, y, x_val=x[::3], y_val=y[::3], epochs=20, subsample=64,
+            training.train_lm(model, x, y, x_val=x[::3], y_val=y[::3], epochs=20, subsample=64,
                         resample_every=5, seed=7, threads=1)
         else:
-            nn.train_adam_lbfgs(model, x, y, x_val=x[::3], y_val=y[::3], adam_steps=50,
+            training.train_adam_lbfgs(model, x, y, x_val=x[::3], y_val=y[::3], adam_steps=50,
                                 batch=32, lbfgs_iters=20, val_every=10, seed=7, threads=1)
         thetas.append(model.theta.detach().numpy().copy())
     np.testing.assert_array_equal(thetas[0], thetas[1])
@@ -124,7 +126,7 @@ def test_training_is_reproducible(algorithm):
 @pytest.fixture(scope='module')
 def fresh_maps():
     """Three maps at random wear inside the ranges, on the database grid (DB2 flows)."""
-    return nn.offgrid_maps(3, q_max_m3_s=6e-5, n_q=15, seed=777)
+    return heldout_maps(3, q_max_m3_s=6e-5, n_q=15, seed=777)
 
 
 @pytest.mark.parametrize('name', ['nn', 'nn2'])
@@ -149,11 +151,11 @@ NN2_MAP_BOUND = 0.005
                                          (1.5e-5, NN_MAP_BOUND_NARROW_FLOWS)])
 def test_shipped_nn_on_fresh_maps(fresh_maps, q_max, bound):
     s = load_surrogate('nn')
-    maps = fresh_maps if q_max == 6e-5 else nn.offgrid_maps(3, q_max_m3_s=q_max, n_q=15,
+    maps = fresh_maps if q_max == 6e-5 else heldout_maps(3, q_max_m3_s=q_max, n_q=15,
                                                             seed=777)
     for xs, q, lap, clr, p12 in maps:
         pred = s.p12(xs[:, None], q[None, :], lap, clr)
-        assert np.linalg.norm(pred - p12) / np.linalg.norm(p12) < bound
+        assert relative_error(pred, p12) < bound
 
 
 def test_shipped_nn2_on_fresh_nominal_map():
@@ -165,7 +167,7 @@ def test_shipped_nn2_on_fresh_nominal_map():
     q = 0.5 * (q[1:] + q[:-1])[::9]
     p12 = transient_map(xs[:, None], q[None, :], params=p)['p12_pa']
     pred = s.p12(xs[:, None], q[None, :], 5e-6, 5e-6)   # wear arguments are ignored
-    assert np.linalg.norm(pred - p12) / np.linalg.norm(p12) < NN2_MAP_BOUND
+    assert relative_error(pred, p12) < NN2_MAP_BOUND
 
 
 #: Bounds on the per-map wear error (median of the map's curves), % of each parameter's range
@@ -214,3 +216,36 @@ def test_inference_modules_do_not_import_torch():
             'd.estimate_wear(np.zeros(133), 0.0)\n'
             "assert 'torch' not in sys.modules, 'torch imported'\n")
     subprocess.run([sys.executable, '-c', code], check=True)
+
+
+def test_both_network_families_train_through_one_trainer():
+    """The fluid networks and the diagnostic network share ``training.fit_network``: with the
+    same normalised data, seed and settings each gives the trainer's own network."""
+    pytest.importorskip('torch')
+    rng = np.random.default_rng(3)
+    raw = _random_inputs(300, rng)
+    y = np.sin(raw[:, 0] / 1e-4) * 1e7 + raw[:, 1] * 1e11
+    st = {'epochs': 5, 'subsample': 1000}
+    data, _, _, _ = nn_train._fit_model(raw, y, raw[::3], y[::3], sources=[0, 1],
+                                        transforms=['linear', 'linear'], scales=None,
+                                        hidden=[5], algorithm='lm', seed=4, settings=st,
+                                        threads=1)
+    inputs, output = nn.fit_inputs(raw, [0, 1], ['linear', 'linear']), nn.fit_output(y)
+    ref, _, _ = training.fit_network(nn.transform_inputs(inputs, raw),
+                                     (y - output[0]) / output[1],
+                                     nn.transform_inputs(inputs, raw[::3]),
+                                     (y[::3] - output[0]) / output[1], hidden=[5],
+                                     algorithm='lm', seed=4, settings=st, threads=1)
+    np.testing.assert_array_equal(data[3], ref.theta.detach().numpy())
+    x2 = np.stack([raw[:, 0], raw[:, 1] * 3.0], axis=1)
+    y2 = np.stack([y, -y], axis=1)
+    weights, in_norm, out_norm, _, _ = diagnostics._train_one(
+        x2, y2, x2[::3], y2[::3], hidden=[5], algorithm='lm', seed=4, settings=st, threads=1)
+    in2, out2 = training.minmax(x2), training.minmax(y2)
+    ref2, _, _ = training.fit_network((x2 - in2[0]) / in2[1], (y2 - out2[0]) / out2[1],
+                                      (x2[::3] - in2[0]) / in2[1],
+                                      (y2[::3] - out2[0]) / out2[1], hidden=[5],
+                                      algorithm='lm', seed=4, settings=st, threads=1)
+    for (w, b), (wr, br) in zip(weights, ref2.layers()):
+        np.testing.assert_array_equal(w, wr.detach().numpy())
+        np.testing.assert_array_equal(b, br.detach().numpy())

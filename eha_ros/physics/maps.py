@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit, prange
 
 from .params import PlantParams, default_params, replace
-from .valve import steady_pressures
+from .valve import edge_constants, net_flow, steady_pressures, valve_coefficients
 
 __all__ = ['WEAR_RANGES', 'spool_grid', 'transient_map', 'steady_map', 'MapResult',
            'settling_mask']
@@ -54,64 +54,39 @@ def spool_grid(n: int = 133, stroke_m: float | None = None, density: float = 4.0
     return 0.5 * (x - x[::-1])  # exact antisymmetry
 
 
-@njit(cache=True, inline='always')
-def _edge(opening, c2, k_rl, k_r4, k_bl):
-    if opening > 0.0:
-        rl = 0.0
-        g = 1.0 / (c2 + opening * opening)
-    else:
-        rl = -k_rl * opening
-        g = 1.0 / c2
-    return rl, rl * rl + k_bl * g * g, k_r4 * g
-
-
 @njit(cache=True, parallel=True)
 def _transient_kernel(xs, q, lap_s, lap_r, clr, consts, n_steps, dt, out_p1, out_p2):
-    """Integrate every point from zero pressure for ``n_steps`` steps."""
+    """Integrate every point from zero pressure for ``n_steps`` steps, with the valve's own
+    edge equations (:mod:`.valve`)."""
     (ps, pr, pvap, kvol, clk, mu, rho, w, cd, ecc, lc, reynolds) = (
         consts[0], consts[1], consts[2], consts[3], consts[4], consts[5], consts[6],
         consts[7], consts[8], consts[9], consts[10], consts[11])
     n = xs.size
     n_blocks = (n + _BLOCK - 1) // _BLOCK
-    k_r4 = 2.0 * rho / (cd * cd * w * w)
-    k_bl = mu * mu * lc * lc / (16.0 * cd * cd * w * w) if reynolds != 0.0 else 0.0
     for b in prange(n_blocks):
         i0 = b * _BLOCK
         m = min(_BLOCK, n - i0)
-        # per point: RL and (RL^2 + B_lam) and R4 of edges 1S, 1R, 2S, 2R
+        # per point: (RL, B_lam, R4) of edges 1S, 1R, 2S, 2R
         co = np.empty((12, _BLOCK))
         qq = np.empty(_BLOCK)
         p1t = np.zeros(_BLOCK)
         p2t = np.zeros(_BLOCK)
         for j in range(m):
             i = i0 + j
-            c = clr[i]
-            c2 = c * c
-            k_rl = 12.0 * mu / (w * c * c * c * (1.0 + 1.5 * ecc * ecc))
-            x = xs[i]
-            e = _edge(x - lap_s[i], c2, k_rl, k_r4, k_bl)
-            co[0, j], co[1, j], co[2, j] = e
-            e = _edge(-x - lap_r[i], c2, k_rl, k_r4, k_bl)
-            co[3, j], co[4, j], co[5, j] = e
-            e = _edge(-x - lap_s[i], c2, k_rl, k_r4, k_bl)
-            co[6, j], co[7, j], co[8, j] = e
-            e = _edge(x - lap_r[i], c2, k_rl, k_r4, k_bl)
-            co[9, j], co[10, j], co[11, j] = e
+            vc = edge_constants(clr[i], lap_s[i], lap_r[i], w, cd, mu, rho, ecc, lc,
+                                reynolds != 0.0)
+            e = valve_coefficients(xs[i], vc)
+            for k in range(12):
+                co[k, j] = e[k]
             qq[j] = q[i]
         for _ in range(n_steps):
             for j in range(m):
                 p1 = max(pvap, p1t[j])
                 p2 = max(pvap, p2t[j])
-                a = ps - p1
-                bb = p1 - pr
-                da = max(co[0, j] + math.sqrt(co[1, j] + co[2, j] * abs(a)), 1e-300)
-                db = max(co[3, j] + math.sqrt(co[4, j] + co[5, j] * abs(bb)), 1e-300)
-                q1l = 2.0 * (a * db - bb * da) / (da * db)
-                a2 = p2 - pr
-                b2 = ps - p2
-                da2 = max(co[9, j] + math.sqrt(co[10, j] + co[11, j] * abs(a2)), 1e-300)
-                db2 = max(co[6, j] + math.sqrt(co[7, j] + co[8, j] * abs(b2)), 1e-300)
-                q2l = 2.0 * (a2 * db2 - b2 * da2) / (da2 * db2)
+                q1l = net_flow(ps - p1, co[0, j], co[1, j], co[2, j],
+                               p1 - pr, co[3, j], co[4, j], co[5, j])
+                q2l = net_flow(p2 - pr, co[9, j], co[10, j], co[11, j],
+                               ps - p2, co[6, j], co[7, j], co[8, j])
                 qm = qq[j] + clk * (p1 - p2)
                 p1t[j] += (q1l - qm) * kvol * dt
                 p2t[j] += (qm - q2l) * kvol * dt

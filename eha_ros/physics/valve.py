@@ -37,7 +37,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ['valve_constants', 'net_flow', 'edge_coefficients', 'orifice_flow',
+__all__ = ['edge_constants', 'valve_constants', 'net_flow', 'edge_coefficients', 'orifice_flow',
            'valve_coefficients', 'valve_flows', 'chamber_step', 'orifice_pressure_drop',
            'steady_pressures']
 
@@ -45,25 +45,32 @@ _TINY = 1e-300
 
 
 @njit(cache=True, inline='always')
-def valve_constants(p):
-    """Spool-independent constants of the metering edges, computed once per run.
-
-    Returns ``(c^2, k_rl, k_r4, k_bl, OSSV, ORSV)`` with ``RL = k_rl X0``,
-    ``R4 = k_r4 / h^2`` and ``B_lam = k_bl / h^4``.
-    """
-    c = p.radial_clearance_m
-    w = p.port_width_m
-    cd = p.discharge_coefficient * (1.0 - p.valve_degradation)
-    mu = p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s
-    ecc = p.eccentricity_ratio
-    k_rl = 12.0 * mu / (w * c * c * c * (1.0 + 1.5 * ecc * ecc))
-    k_r4 = 2.0 * p.fluid_density_kg_m3 / (cd * cd * w * w)
-    if p.cd_model == 0.0:
-        lc = p.critical_flow_number
-        k_bl = mu * mu * lc * lc / (16.0 * cd * cd * w * w)
+def edge_constants(clearance_m, lap_supply_m, lap_return_m, port_width_m, cd_eff, mu_pa_s,
+                   rho_kg_m3, eccentricity, critical_flow_number, reynolds):
+    """Spool-independent constants of the metering edges for one clearance and pair of laps:
+    ``(c^2, k_rl, k_r4, k_bl, OSSV, ORSV)`` with ``RL = k_rl X0``, ``R4 = k_r4 / h^2`` and
+    ``B_lam = k_bl / h^4`` (``k_bl = 0`` unless ``reynolds``); ``cd_eff`` includes Khsv."""
+    c = clearance_m
+    w = port_width_m
+    k_rl = 12.0 * mu_pa_s / (w * c * c * c * (1.0 + 1.5 * eccentricity * eccentricity))
+    k_r4 = 2.0 * rho_kg_m3 / (cd_eff * cd_eff * w * w)
+    if reynolds:
+        lc = critical_flow_number
+        k_bl = mu_pa_s * mu_pa_s * lc * lc / (16.0 * cd_eff * cd_eff * w * w)
     else:
         k_bl = 0.0
-    return c * c, k_rl, k_r4, k_bl, p.overlap_supply_m, p.overlap_return_m
+    return c * c, k_rl, k_r4, k_bl, lap_supply_m, lap_return_m
+
+
+@njit(cache=True, inline='always')
+def valve_constants(p):
+    """Spool-independent constants of the metering edges (:func:`edge_constants` at the
+    parameters' clearance and laps), computed once per run."""
+    return edge_constants(p.radial_clearance_m, p.overlap_supply_m, p.overlap_return_m,
+                          p.port_width_m, p.discharge_coefficient * (1.0 - p.valve_degradation),
+                          p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s,
+                          p.fluid_density_kg_m3, p.eccentricity_ratio, p.critical_flow_number,
+                          p.cd_model == 0.0)
 
 
 @njit(cache=True, inline='always')

@@ -30,7 +30,7 @@ from eha_ros.physics import PlantParams, default_params
 from .database import DatabaseError, fluid_hash
 
 __all__ = ['FluidSurrogate', 'SurrogateError', 'models_dir', 'save_artefact', 'load_artefact',
-           'register_kernel', 'load_surrogate', 'KERNELS']
+           'register_kernel', 'load_surrogate', 'KERNELS', 'relative_error', 'map_errors']
 
 
 class SurrogateError(DatabaseError):
@@ -78,7 +78,23 @@ class FluidSurrogate:
             raise SurrogateError(
                 f'surrogate {self.name} was built for fluid parameters '
                 f'{self.meta.get("fluid_hash")}, these are {fluid_hash(p)}: retrain it '
-                '(eha-train-surrogates) or use the parameters it was built for')
+                '(python -m eha_ros.surrogates.<module>, see the module docstring) or use the '
+                'parameters it was built for')
+
+
+def relative_error(pred, true) -> float:
+    """The reference's error metric: ``||pred - true||_2 / ||true||_2`` (Euclidean norms over
+    all points; a map, a time history)."""
+    pred = np.asarray(pred, dtype=float)
+    true = np.asarray(true, dtype=float)
+    return float(np.linalg.norm(pred - true) / np.linalg.norm(true))
+
+
+def map_errors(model, maps) -> np.ndarray:
+    """:func:`relative_error` of each map: ``model(xs, q, overlap, clearance)`` broadcasts
+    (e.g. :meth:`FluidSurrogate.p12`); ``maps`` as :func:`.database.heldout_maps` returns."""
+    return np.array([relative_error(model(xs[:, None], q[None, :], lap, clr), p12)
+                     for xs, q, lap, clr, p12 in maps])
 
 
 def models_dir() -> Path:

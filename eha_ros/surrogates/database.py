@@ -33,7 +33,7 @@ from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
 
 __all__ = ['DatabaseSpec', 'Database', 'DATABASES', 'FLUID_PARAMETERS', 'fluid_hash',
            'build_database', 'load_database', 'cache_dir', 'get_database', 'DatabaseError',
-           'random_wear', 'maps_at']
+           'random_wear', 'maps_at', 'heldout_maps']
 
 #: Physics parameters the fluid-dynamic block (and so every map) depends on.  Overlap and
 #: clearance are inputs of the maps and are left out.
@@ -273,3 +273,32 @@ def maps_at(xs_m, q_m3_s, overlap_m, clearance_m, params: PlantParams):
                       clearance_m[None, None, :], params=params)['p12_pa']
     return [(xs_m, q_m3_s, float(overlap_m[m]), float(clearance_m[m]), r[:, :, m])
             for m in range(overlap_m.size)]
+
+
+def heldout_maps(n_maps: int = 1, *, seed: int = 0, params: PlantParams | None = None,
+                 q_max_m3_s: float = FLOW_MAX_M3_S, n_q: int = 15, wear=None,
+                 xs_midpoints: bool = False, random_flows: bool = False, xs_m=None,
+                 q_m3_s=None):
+    """Fresh maps for validation, from the reference's transient (:func:`maps_at`): the one
+    generator of held-out maps of every surrogate.
+
+    Wear: ``n_maps`` pairs drawn uniformly inside :data:`WEAR_RANGES` from
+    ``numpy.random.default_rng(seed)``, or the given ``wear`` pairs.  Spool positions:
+    ``spool_grid(133)``, its midpoints (``xs_midpoints``, off every table grid) or ``xs_m``.
+    Flows: ``n_q`` over ``+-q_max_m3_s``, evenly spaced or (``random_flows``) drawn uniformly
+    from the same generator and sorted, or ``q_m3_s``.
+
+    Returns a list of ``(xs_m, q_m3_s, overlap_m, clearance_m, p12_pa)``, ``p12_pa`` of shape
+    ``(n_xs, n_q)``.
+    """
+    p = params if params is not None else default_params()
+    rng = np.random.default_rng(seed)
+    lap, clr = random_wear(n_maps, rng, wear)
+    if xs_m is None:
+        xs_m = spool_grid(133, p.spool_stroke_m)
+        if xs_midpoints:
+            xs_m = 0.5 * (xs_m[1:] + xs_m[:-1])
+    if q_m3_s is None:
+        q_m3_s = (np.sort(rng.uniform(-q_max_m3_s, q_max_m3_s, n_q)) if random_flows
+                  else np.linspace(-q_max_m3_s, q_max_m3_s, n_q))
+    return maps_at(np.asarray(xs_m, dtype=float), np.asarray(q_m3_s, dtype=float), lap, clr, p)

@@ -46,7 +46,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +55,8 @@ from eha_ros.physics.maps import WEAR_RANGES
 
 from .base import SurrogateError, load_artefact, models_dir, save_artefact
 from .database import Database, fluid_hash, get_database
-from .nn import split_weights
+from .nn import mlp_forward, split_weights
+from .training import map_split, minmax
 
 __all__ = ['WearEstimate', 'DiagnosticModel', 'load_diagnostic', 'estimate_wear',
            'estimate_wear_batch', 'estimate_wear_map', 'add_noise', 'curves_from_maps',
@@ -117,11 +117,7 @@ class DiagnosticModel:
         if self.symmetric:
             p12_curves_pa, q_m3_s = canonical_curves(p12_curves_pa, q_m3_s)
         x = np.concatenate([p12_curves_pa, q_m3_s[:, None]], axis=1)
-        h = (x - self.in_norm[0]) / self.in_norm[1]
-        for n, (w, b) in enumerate(self.weights):
-            h = h @ w + b
-            if n < len(self.weights) - 1:
-                h = np.tanh(h)
+        h = mlp_forward(self.weights, (x - self.in_norm[0]) / self.in_norm[1])
         return self.out_norm[0] + self.out_norm[1] * h
 
     def data(self) -> tuple:
@@ -311,28 +307,14 @@ def _half(curves, q, wear):
 
 
 def _train_one(x_tr, y_tr, x_va, y_va, *, hidden, algorithm, seed, settings, threads):
-    """Fit normalisation on the training split, train, return ``(model, history, wall_s)``."""
-    import torch
-
-    from .nn import make_torch_mlp, train_adam_lbfgs, train_lm
-    lo, hi = x_tr.min(axis=0), x_tr.max(axis=0)
-    in_norm = np.stack([0.5 * (hi + lo), np.where(hi > lo, 0.5 * (hi - lo), 1.0)])
-    lo, hi = y_tr.min(axis=0), y_tr.max(axis=0)
-    out_norm = np.stack([0.5 * (hi + lo), np.where(hi > lo, 0.5 * (hi - lo), 1.0)])
-    to_t = (lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=torch.float64))
-    xt, yt = to_t((x_tr - in_norm[0]) / in_norm[1]), to_t((y_tr - out_norm[0]) / out_norm[1])
-    xv, yv = to_t((x_va - in_norm[0]) / in_norm[1]), to_t((y_va - out_norm[0]) / out_norm[1])
-    net = make_torch_mlp(d_in=x_tr.shape[1], d_hidden=hidden, d_out=y_tr.shape[1], seed=seed)
-    t0 = time.perf_counter()
-    if algorithm == 'lm':
-        hist = train_lm(net, xt, yt, x_val=xv, y_val=yv, seed=seed, threads=threads,
-                        **settings)
-    elif algorithm == 'adam_lbfgs':
-        hist = train_adam_lbfgs(net, xt, yt, x_val=xv, y_val=yv, seed=seed, threads=threads,
-                                **settings)
-    else:
-        raise ValueError(f'unknown training algorithm {algorithm!r}')
-    wall = time.perf_counter() - t0
+    """Fit normalisation on the training split, train (:func:`.training.fit_network`), return
+    ``(weights, in_norm, out_norm, history, wall_s)``."""
+    from .training import fit_network
+    in_norm, out_norm = minmax(x_tr), minmax(y_tr)
+    net, hist, wall = fit_network(
+        (x_tr - in_norm[0]) / in_norm[1], (y_tr - out_norm[0]) / out_norm[1],
+        (x_va - in_norm[0]) / in_norm[1], (y_va - out_norm[0]) / out_norm[1],
+        hidden=hidden, algorithm=algorithm, seed=seed, settings=settings, threads=threads)
     weights = [(w.detach().numpy().copy(), b.detach().numpy().copy()) for w, b in net.layers()]
     return weights, in_norm, out_norm, hist, wall
 
@@ -344,7 +326,6 @@ def train_diagnostic(*, settings: dict | None = None, params: PlantParams | None
     p = params if params is not None else default_params()
     st = dict(DIAG_SETTINGS)
     st.update(settings or {})
-    from .nn import map_split
     db = get_database(st['database'], p)
     train, val, test = map_split(db.overlap_m.size, db.clearance_m.size, n_test=st['n_test'],
                                  n_val=st['n_val'], seed=st['split_seed'])

@@ -70,7 +70,6 @@ algorithm's.
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import math
 import time
 from pathlib import Path
@@ -81,7 +80,7 @@ from numba import njit, prange
 from eha_ros.physics import PlantParams, default_params, params_hash
 
 from .base import FluidSurrogate, SurrogateError, models_dir, register_kernel, save_artefact
-from .database import FLOW_MAX_M3_S, get_database
+from .database import FLOW_MAX_M3_S, get_database, heldout_maps
 
 __all__ = ['XS_REF_M', 'Q_REF_M3_S', 'THESIS_INITIAL', 'THESIS_LB', 'THESIS_UB',
            'MIN_DENOMINATOR', 'GASettings', 'GAResult', 'formula', 'ga_kernel', 'make_ga',
@@ -425,8 +424,6 @@ def gradient_fit(xs_m, q_m3_s, p12_pa, xs_max_m: float, x0=THESIS_INITIAL, lb=TH
 def nominal_offgrid_map(params: PlantParams | None = None, xs_grid_m=None, q_grid_m3_s=None):
     """The nominal-wear map at the midpoints of a training grid (default: DB5's), from the
     databases' map transient: ``(xs_m, q_m3_s, p12_pa)``, each of shape ``(n_xs-1, n_q-1)``."""
-    from eha_ros.physics.maps import transient_map
-
     p = params if params is not None else default_params()
     if xs_grid_m is None or q_grid_m3_s is None:
         db = get_database('DB5', p)
@@ -434,7 +431,9 @@ def nominal_offgrid_map(params: PlantParams | None = None, xs_grid_m=None, q_gri
     xs = 0.5 * (xs_grid_m[1:] + xs_grid_m[:-1])
     q = 0.5 * (q_grid_m3_s[1:] + q_grid_m3_s[:-1])
     x, qq = np.meshgrid(xs, q, indexing='ij')
-    return x, qq, transient_map(x, qq, params=p)['p12_pa']
+    (_, _, _, _, p12), = heldout_maps(wear=[(p.overlap_supply_m, p.radial_clearance_m)],
+                                      params=p, xs_m=xs, q_m3_s=q)
+    return x, qq, p12
 
 
 def build_artefact(params: PlantParams | None = None, path: Path | None = None,
@@ -451,7 +450,7 @@ def build_artefact(params: PlantParams | None = None, path: Path | None = None,
         Genetic-algorithm settings and seed (default :class:`GASettings()`).
     gradient : bool
         Also refit with the gradient optimiser from the GA's best and from the reference's
-        initial coefficients and record both in the meta (needs scipy; skipped without it).
+        initial coefficients and record both in the meta.
 
     Returns
     -------
@@ -471,16 +470,12 @@ def build_artefact(params: PlantParams | None = None, path: Path | None = None,
     held = float(relative_error(res.coefficients, xh, qh, ph)[0])
     grad = {}
     if gradient:
-        if importlib.util.find_spec('scipy') is None:
-            grad = {'skipped': 'scipy is not installed'}
-        else:
-            for label, start in (('from_ga', res.coefficients), ('from_initial',
-                                                                  THESIS_INITIAL)):
-                c, err, info = gradient_fit(x, q, p12, stroke, x0=start)
-                grad[label] = {'coefficients': c.tolist(), 'train_error': err,
-                               'heldout_error': float(relative_error(c, xh, qh, ph)[0]),
-                               'nfev': info['nfev'], 'admissible': info['admissible'],
-                               'wall_s': round(info['wall_s'], 2)}
+        for label, start in (('from_ga', res.coefficients), ('from_initial', THESIS_INITIAL)):
+            c, err, info = gradient_fit(x, q, p12, stroke, x0=start)
+            grad[label] = {'coefficients': c.tolist(), 'train_error': err,
+                           'heldout_error': float(relative_error(c, xh, qh, ph)[0]),
+                           'nfev': info['nfev'], 'admissible': info['admissible'],
+                           'wall_s': round(info['wall_s'], 2)}
     meta = {
         'kind': 'ga', 'format': 1,
         'function': 'c1 tanh(c2 wxs) + c3 wq/(1 + c4 wxs^2 + c5 wxs^4) '

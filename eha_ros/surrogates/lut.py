@@ -63,7 +63,9 @@ from eha_ros.physics import PlantParams, default_params, params_hash
 from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
 
 from .base import FluidSurrogate, SurrogateError, models_dir, register_kernel, save_artefact
-from .database import FLOW_MAX_M3_S, fluid_hash, get_database, maps_at, random_wear
+from .base import map_errors
+from .database import FLOW_MAX_M3_S, fluid_hash, get_database
+from .database import heldout_maps as _heldout_maps
 
 __all__ = ['lut_kernel', 'axis_tables', 'make_lut', 'build_table', 'heldout_maps', 'map_errors',
            'build_artefact', 'GRID', 'AXES']
@@ -244,37 +246,11 @@ def build_table(params: PlantParams | None = None, n_xs: int = GRID['n_xs'],
 
 def heldout_maps(n_maps: int, seed: int = 0, params: PlantParams | None = None,
                  n_q: int = 30, wear=None):
-    """Maps off every table grid, for validation: ``n_maps`` wear pairs drawn uniformly inside
-    ``WEAR_RANGES`` from ``seed`` (or the given ``wear`` pairs, ``n_maps`` then ignored), each
-    on the midpoints of ``spool_grid(133)`` x ``n_q`` sorted flows drawn uniformly over
-    ``+-FLOW_MAX_M3_S``.
-
-    Returns
-    -------
-    list of (xs_m, q_m3_s, overlap_m, clearance_m, p12_pa)
-        ``xs_m`` (132,), ``q_m3_s`` (n_q,), the wear pair, ``p12_pa`` (132, n_q) from the map
-        transient.
-    """
-    p = params if params is not None else default_params()
-    rng = np.random.default_rng(seed)
-    lap, clr = random_wear(n_maps, rng, wear)
-    g = spool_grid(133, p.spool_stroke_m)
-    xs = 0.5 * (g[1:] + g[:-1])
-    q = np.sort(rng.uniform(-FLOW_MAX_M3_S, FLOW_MAX_M3_S, n_q))
-    return maps_at(xs, q, lap, clr, p)
-
-
-def map_errors(model, maps) -> np.ndarray:
-    """Relative Euclidean-norm error ``||P_pred - P||_2 / ||P||_2`` of each map.
-
-    ``model(xs, q, overlap, clearance)`` broadcasts (e.g. :meth:`FluidSurrogate.p12`);
-    ``maps`` as returned by :func:`heldout_maps`.
-    """
-    errs = []
-    for xs, q, lap, clr, p12 in maps:
-        pred = model(xs[:, None], q[None, :], lap, clr)
-        errs.append(float(np.linalg.norm(pred - p12) / np.linalg.norm(p12)))
-    return np.array(errs)
+    """Maps off every table grid (:func:`.database.heldout_maps`): ``n_maps`` wear pairs drawn
+    inside ``WEAR_RANGES`` from ``seed`` (or the given ``wear`` pairs), each on the midpoints
+    of ``spool_grid(133)`` x ``n_q`` sorted flows drawn uniformly over ``+-FLOW_MAX_M3_S``."""
+    return _heldout_maps(n_maps, seed=seed, params=params, n_q=n_q, wear=wear,
+                         xs_midpoints=True, random_flows=True)
 
 
 def build_artefact(params: PlantParams | None = None, path: Path | None = None,

@@ -1,0 +1,367 @@
+"""Training of the project's tanh networks (torch, imported inside the functions only): the
+fluid surrogates of :mod:`.nn_train`, the dynamic edge network of :mod:`.dynamic` and the
+wear-diagnosis network of :mod:`.diagnostics` all train through :func:`fit_network`.
+
+Model
+    :func:`make_torch_mlp`: a tanh MLP (float64, linear output) whose weights live in one flat
+    parameter ``theta`` laid out as the numba kernel (:func:`eha_ros.surrogates.nn.mlp_kernel`)
+    and the numpy forward pass (:func:`eha_ros.surrogates.nn.mlp_forward`) read them.
+
+Algorithms
+    :func:`train_lm`, Levenberg-Marquardt as MATLAB's ``trainlm`` (damping ``mu`` multiplied by
+    ``mu_dec`` after a step that lowers the loss and by ``mu_inc`` until one does; ``(J'J + mu
+    I) d = J'e`` with the Jacobian formed by hand, batched, on a random subset of the training
+    points redrawn every ``resample_every`` epochs); :func:`train_adam_lbfgs`, Adam on
+    minibatches then full-batch L-BFGS.  Both minimise the (optionally weighted) mean squared
+    error of the normalised outputs and keep the parameters of the best validation check.
+
+Normalisation
+    :func:`minmax`: per column ``(mid, half)`` mapping the training split to [-1, 1].
+
+Splits
+    :func:`map_split`: whole maps (wear pairs) held out from the interior of a wear grid.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+__all__ = ['make_torch_mlp', 'torch_from_data', 'train_lm', 'train_adam_lbfgs', 'fit_network',
+           'minmax', 'map_split', 'ALGORITHMS']
+
+#: Training algorithms :func:`fit_network` knows.
+ALGORITHMS = ('lm', 'adam_lbfgs')
+
+
+def _torch():
+    import torch
+    return torch
+
+
+def make_torch_mlp(*, d_in: int, d_hidden: list, d_out: int = 1, seed: int = 0):
+    """A tanh MLP as a torch module (float64) with its weights in one flat parameter ``theta``
+    laid out as the kernel reads them.  Weights: Glorot-uniform from ``seed``, biases zero."""
+    torch = _torch()
+
+    class MLP(torch.nn.Module):
+        def __init__(self, *, d_in, d_hidden, d_out):
+            super().__init__()
+            self.config = {'d_in': int(d_in), 'd_hidden': [int(h) for h in d_hidden],
+                           'd_out': int(d_out)}
+            self.sizes = [self.config['d_in'], *self.config['d_hidden'], self.config['d_out']]
+            self.theta = torch.nn.Parameter(torch.zeros(
+                sum(do * di + do for di, do in zip(self.sizes[:-1], self.sizes[1:])),
+                dtype=torch.float64))
+
+        def layers(self, theta=None):
+            theta = self.theta if theta is None else theta
+            k = 0
+            out = []
+            for di, do in zip(self.sizes[:-1], self.sizes[1:]):
+                w = theta[k:k + do * di].view(di, do)
+                k += do * di
+                out.append((w, theta[k:k + do]))
+                k += do
+            return out
+
+        def forward(self, x, theta=None):
+            ws = self.layers(theta)
+            h = x
+            for n, (w, b) in enumerate(ws):
+                h = torch.addmm(b, h, w)
+                if n < len(ws) - 1:
+                    h = torch.tanh(h)
+            return h
+
+        @torch.no_grad()
+        def jacobian(self, x):
+            """``(N * d_out, P)`` derivative of the outputs (row ``n * d_out + o``) with
+            respect to ``theta``, by hand: one batched backward sweep per output."""
+            ws = self.layers()
+            acts = [x]
+            h = x
+            for w, b in ws[:-1]:
+                h = torch.tanh(torch.addmm(b, h, w))
+                acts.append(h)
+            n_pts = x.shape[0]
+            d_out = self.sizes[-1]
+            jac = torch.empty((n_pts, d_out, self.theta.numel()), dtype=x.dtype)
+            for o in range(d_out):
+                delta = torch.zeros((n_pts, d_out), dtype=x.dtype)
+                delta[:, o] = 1.0
+                k_end = self.theta.numel()
+                for n in range(len(ws) - 1, -1, -1):
+                    w, _ = ws[n]
+                    di, do = w.shape
+                    jac[:, o, k_end - do:k_end] = delta
+                    jac[:, o, k_end - do - do * di:k_end - do] = (
+                        acts[n][:, :, None] * delta[:, None, :]).reshape(n_pts, di * do)
+                    k_end -= do + do * di
+                    if n > 0:
+                        delta = (delta @ w.T) * (1.0 - acts[n] ** 2)
+            return jac.reshape(n_pts * d_out, -1)
+
+    model = MLP(d_in=d_in, d_hidden=d_hidden, d_out=d_out)
+    gen = torch.Generator().manual_seed(int(seed))
+    with torch.no_grad():
+        for w, b in model.layers():
+            lim = math.sqrt(6.0 / (w.shape[0] + w.shape[1]))  # Glorot
+            w.copy_((torch.rand(w.shape, generator=gen, dtype=torch.float64) * 2 - 1) * lim)
+            b.zero_()
+    return model
+
+
+def torch_from_data(data):
+    """Rebuild the torch module of a packed MLP (for checks against the exported kernel)."""
+    from .nn import unpack
+
+    torch = _torch()
+    u = unpack(data)
+    model = make_torch_mlp(d_in=u['sizes'][0], d_hidden=u['sizes'][1:-1], d_out=u['sizes'][-1])
+    with torch.no_grad():
+        model.theta.copy_(torch.as_tensor(np.asarray(data[3], dtype=float)))
+    return model.eval()
+
+
+# --- training --------------------------------------------------------------------------------
+
+def _mse(model, x, y, w=None):
+    """(Weighted) mean squared error; ``w`` one weight per row of ``x``."""
+    torch = _torch()
+    model.eval()
+    with torch.no_grad():
+        r2 = (model(x) - y) ** 2
+        return float(torch.mean(r2 if w is None else r2 * w[:, None]))
+
+
+def train_lm(model, x, y, *, x_val=None, y_val=None, w=None, w_val=None,
+             epochs: int = 1000, mu: float = 1e-3,
+             mu_dec: float = 0.1, mu_inc: float = 10.0, mu_max: float = 1e10,
+             max_fail: int = 50, subsample: int = 20000, resample_every: int = 0,
+             min_grad: float = 1e-12, time_limit_s: float = float('inf'), seed: int = 0,
+             threads: int = 2) -> dict:
+    """Levenberg-Marquardt on the mean squared error (MATLAB's ``trainlm``).
+
+    Each epoch solves ``(J'J + mu I) d = J'e`` on at most ``subsample`` training points (drawn
+    from ``seed``; redrawn every ``resample_every`` epochs, never if 0), accepts the step if it
+    lowers the loss (``mu *= mu_dec``) and otherwise retries with ``mu *= mu_inc``.  Stops at
+    ``epochs``, ``mu > mu_max``, a gradient norm below ``min_grad``, ``max_fail`` epochs
+    without a better validation loss, or ``time_limit_s``.  The parameters of the best
+    validation epoch (of the last epoch without validation data) are kept.  ``w``, ``w_val``:
+    optional weights of the training and validation points (weighted least squares).
+
+    Returns the history: ``loss``, ``val``, ``mu`` per epoch, ``epochs``, ``stop``, ``time_s``.
+    """
+    torch = _torch()
+    torch.set_num_threads(threads)
+    gen = np.random.default_rng(seed)
+    n = x.shape[0]
+
+    w = torch.ones(n, dtype=x.dtype) if w is None else w
+
+    def draw():
+        if n <= subsample:
+            return x, y, w
+        idx = torch.as_tensor(np.sort(gen.choice(n, subsample, replace=False)))
+        return x[idx], y[idx], w[idx]
+
+    xs, ys, ws = draw()
+    t0 = time.perf_counter()
+    hist = {'loss': [], 'val': [], 'mu': []}
+    best = (math.inf, model.theta.detach().clone())
+    fails = 0
+    stop = 'epochs'
+    eye = torch.eye(model.theta.numel(), dtype=torch.float64)
+    theta = model.theta
+    for ep in range(epochs):
+        if resample_every and ep and ep % resample_every == 0:
+            xs, ys, ws = draw()
+        with torch.no_grad():
+            sw = torch.sqrt(ws).repeat_interleave(ys.shape[1])
+            e = (model(xs) - ys).reshape(-1) * sw
+            loss = float(torch.mean(e ** 2))
+            jac = model.jacobian(xs) * sw[:, None]
+            hess = jac.T @ jac
+            grad = jac.T @ e
+            if float(torch.linalg.vector_norm(grad)) / e.numel() < min_grad:
+                stop = 'min_grad'
+                break
+            theta0 = theta.detach().clone()
+            while True:
+                lhs = hess + mu * eye
+                chol, info = torch.linalg.cholesky_ex(lhs)
+                if int(info) == 0:
+                    step = torch.cholesky_solve(grad[:, None], chol)[:, 0]
+                    theta.copy_(theta0 - step)
+                    new = _mse(model, xs, ys, ws)
+                    if new < loss:
+                        mu = max(mu * mu_dec, 1e-20)
+                        loss = new
+                        break
+                mu *= mu_inc
+                if mu > mu_max:
+                    break
+            if mu > mu_max:
+                theta.copy_(theta0)
+                stop = 'mu_max'
+                break
+        hist['loss'].append(loss)
+        hist['mu'].append(mu)
+        if x_val is not None:
+            v = _mse(model, x_val, y_val, w_val)
+            hist['val'].append(v)
+            if v < best[0]:
+                best = (v, model.theta.detach().clone())
+                fails = 0
+            else:
+                fails += 1
+                if fails >= max_fail:
+                    stop = 'max_fail'
+                    break
+        if time.perf_counter() - t0 > time_limit_s:
+            stop = 'time_limit'
+            break
+    if x_val is not None and best[0] < math.inf:
+        with torch.no_grad():
+            model.theta.copy_(best[1])
+    hist.update(epochs=len(hist['loss']), stop=stop, time_s=time.perf_counter() - t0,
+                final_mu=mu)
+    return hist
+
+
+def train_adam_lbfgs(model, x, y, *, x_val=None, y_val=None, w=None, w_val=None,
+                     adam_steps: int = 3000,
+                     batch: int = 4096, lr: float = 1e-2, lr_final: float = 1e-4,
+                     lbfgs_iters: int = 1000, lbfgs_history: int = 50, val_every: int = 50,
+                     time_limit_s: float = float('inf'), seed: int = 0,
+                     threads: int = 2) -> dict:
+    """Adam on minibatches (learning rate decayed geometrically from ``lr`` to ``lr_final``)
+    then full-batch L-BFGS (strong Wolfe line search), on the mean squared error.  The
+    parameters of the best validation check (every ``val_every`` steps/iterations) are kept.
+    ``time_limit_s`` is split evenly between the two phases.  ``w``, ``w_val``: optional
+    weights of the training and validation points.
+
+    Returns the history: ``loss``, ``val`` per check, ``adam_steps``, ``lbfgs_iters``,
+    ``time_s``.
+    """
+    torch = _torch()
+    torch.set_num_threads(threads)
+    gen = torch.Generator().manual_seed(int(seed))
+    t0 = time.perf_counter()
+    hist = {'loss': [], 'val': []}
+    best = [math.inf, model.theta.detach().clone()]
+
+    w = torch.ones(x.shape[0], dtype=x.dtype) if w is None else w
+
+    def check():
+        v = _mse(model, x_val, y_val, w_val) if x_val is not None else _mse(model, x, y, w)
+        hist['val'].append(v)
+        if v < best[0]:
+            best[0] = v
+            best[1] = model.theta.detach().clone()
+
+    opt = torch.optim.Adam(model.parameters(), lr=lr)
+    gamma = (lr_final / lr) ** (1.0 / max(adam_steps, 1))
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
+    n = x.shape[0]
+    done_adam = 0
+    for step in range(adam_steps):
+        idx = torch.randint(0, n, (min(batch, n),), generator=gen)
+        opt.zero_grad()
+        loss = torch.mean((model(x[idx]) - y[idx]) ** 2 * w[idx, None])
+        loss.backward()
+        opt.step()
+        sched.step()
+        done_adam += 1
+        if step % val_every == 0:
+            hist['loss'].append(float(loss.detach()))
+            check()
+        if time.perf_counter() - t0 > 0.5 * time_limit_s:
+            break
+    check()
+    t_adam = time.perf_counter() - t0
+    opt = torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=val_every,
+                            history_size=lbfgs_history, line_search_fn='strong_wolfe',
+                            tolerance_grad=1e-12, tolerance_change=1e-16)
+
+    def closure():
+        opt.zero_grad()
+        loss = torch.mean((model(x) - y) ** 2 * w[:, None])
+        loss.backward()
+        return loss
+
+    done_lbfgs = 0
+    while done_lbfgs < lbfgs_iters:
+        loss = opt.step(closure)
+        it = opt.state[opt._params[0]]['n_iter']
+        hist['loss'].append(float(loss.detach()))
+        check()
+        if it <= done_lbfgs:
+            break
+        done_lbfgs = it
+        if time.perf_counter() - t0 > time_limit_s:
+            break
+    with torch.no_grad():
+        model.theta.copy_(best[1])
+    hist.update(adam_steps=done_adam, lbfgs_iters=done_lbfgs, adam_time_s=t_adam,
+                time_s=time.perf_counter() - t0)
+    return hist
+
+
+def minmax(a) -> np.ndarray:
+    """``(2, n)`` per column of ``a`` (``(N, n)``, or ``(N,)`` giving ``(2,)``): ``mid``,
+    ``half`` of the min-max normalisation to [-1, 1] (``half = 1`` for a constant column)."""
+    a = np.asarray(a, dtype=float)
+    lo, hi = a.min(axis=0), a.max(axis=0)
+    return np.stack([0.5 * (hi + lo), np.where(hi > lo, 0.5 * (hi - lo), 1.0)])
+
+
+def fit_network(x_tr, y_tr, x_val=None, y_val=None, *, hidden, algorithm: str, seed: int,
+                settings: dict, threads: int = 2, w_tr=None, w_val=None):
+    """Build a tanh MLP of hidden widths ``hidden`` and train it with ``algorithm`` (``'lm'``
+    or ``'adam_lbfgs'``, keyword ``settings`` of :func:`train_lm` / :func:`train_adam_lbfgs`)
+    on already normalised numpy arrays ``x`` ``(N, d_in)`` and ``y`` ``(N, d_out)``; ``w_tr``,
+    ``w_val``: optional point weights (rescaled to mean 1 on the training split).
+
+    Returns ``(model, history, wall_s)``.
+    """
+    if algorithm not in ALGORITHMS:
+        raise ValueError(f'unknown training algorithm {algorithm!r}')
+    torch = _torch()
+
+    def to_t(a):
+        return None if a is None else torch.as_tensor(np.ascontiguousarray(a),
+                                                      dtype=torch.float64)
+    y_tr = np.asarray(y_tr, dtype=float)
+    y_tr = y_tr[:, None] if y_tr.ndim == 1 else y_tr
+    if y_val is not None:
+        y_val = np.asarray(y_val, dtype=float)
+        y_val = y_val[:, None] if y_val.ndim == 1 else y_val
+    if w_tr is not None:
+        scale = 1.0 / np.mean(w_tr)
+        w_tr = np.asarray(w_tr) * scale
+        w_val = np.asarray(w_val) * scale if w_val is not None else None
+    model = make_torch_mlp(d_in=np.shape(x_tr)[1], d_hidden=hidden, d_out=y_tr.shape[1],
+                           seed=seed)
+    train = train_lm if algorithm == 'lm' else train_adam_lbfgs
+    t0 = time.perf_counter()
+    hist = train(model, to_t(x_tr), to_t(y_tr), x_val=to_t(x_val), y_val=to_t(y_val),
+                 w=to_t(w_tr), w_val=to_t(w_val), seed=seed, threads=threads, **settings)
+    return model, hist, time.perf_counter() - t0
+
+
+def map_split(n_overlap: int, n_clearance: int, *, n_test: int, n_val: int, seed: int):
+    """Disjoint lists of ``(i_overlap, j_clearance)`` pairs: train, validation, test.  Test
+    and validation maps are drawn from the interior of the wear grid (never its edges, so they
+    are interpolation tests)."""
+    rng = np.random.default_rng(seed)
+    interior = [(i, j) for i in range(1, n_overlap - 1) for j in range(1, n_clearance - 1)]
+    pick = rng.permutation(len(interior))
+    test = sorted(interior[k] for k in pick[:n_test])
+    val = sorted(interior[k] for k in pick[n_test:n_test + n_val])
+    held = set(test) | set(val)
+    train = [(i, j) for i in range(n_overlap) for j in range(n_clearance) if (i, j) not in held]
+    return train, val, test
