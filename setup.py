@@ -49,6 +49,8 @@ CONSOLE_SCRIPTS = [
     'eha-compare = eha_ros.recording.compare:main',
     'eha-diagnose = eha_ros.tools.diagnose:main',
     'eha-campaign = eha_ros.tools.campaign:main',
+    'eha-graph = eha_ros.tools.graph:main',
+    'eha-recover = eha_ros.recording.recover:main',
 ]
 LAUNCHER_DIR = os.path.join('lib', PACKAGE)
 

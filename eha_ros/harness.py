@@ -50,7 +50,8 @@ class GraphConfig:
     subscribers before its first tick, so nobody misses it.  ``events`` are
     ``(t_s, node_name, {parameter: value})``: set once the plant's state passes ``t_s`` (run-time
     degradation).  ``record``: an MCAP file the ``recorder`` node writes every graph topic to
-    (it must not exist)."""
+    (it must not exist).  ``node_params``: ``{node: {parameter: value}}`` applied last, over
+    what the fields above set (e.g. from a ROS params file, ``config/graph.yaml``)."""
 
     scenario: str = 'step_0p1'
     model: str = 'hf'
@@ -66,6 +67,7 @@ class GraphConfig:
     recorders: int = 0
     events: list = dataclasses.field(default_factory=list)
     record: str = ''
+    node_params: dict = dataclasses.field(default_factory=dict)
 
     def resolved_duration(self) -> float:
         if self.duration_s is not None:
@@ -101,6 +103,9 @@ class GraphConfig:
                                          **self.health_params)
         if self.record:
             out['recorder'] = dict(output=str(Path(self.record).resolve()))
+        for node, values in self.node_params.items():
+            if node in out:
+                out[node].update(values)
         return out
 
 
@@ -109,7 +114,10 @@ class GraphResult:
     """Arrays of what the collector received, in arrival order (``arrival_s``: monotonic
     receipt time of states and current commands); ``health`` is a list of HealthStatus
     messages; ``wall_s`` from start-up to the last state.  In lockstep, ticks the plant
-    re-sent (``resent_ticks`` of them) appear once."""
+    re-sent (``resent_ticks`` of them) appear once.  ``interrupted``: the run was stopped
+    (``stop``) before the plant reached its duration; ``diagnostics``: the last
+    ``DiagnosticStatus`` of each name seen on ``/diagnostics`` (``name -> {'level', 'message',
+    'values'}``), e.g. each node's timing."""
 
     state: dict
     command: dict
@@ -118,6 +126,8 @@ class GraphResult:
     wall_s: float
     config: GraphConfig
     resent_ticks: int = 0
+    interrupted: bool = False
+    diagnostics: dict = dataclasses.field(default_factory=dict)
 
     @property
     def sim_s(self) -> float:
@@ -131,6 +141,12 @@ def _ros_arg(value) -> str:
     if isinstance(value, str):
         return value if value else "''"
     if isinstance(value, (list, tuple)):
+        if value and all(isinstance(v, str) for v in value):
+            return '[' + ', '.join(value) + ']'
+        if value and all(isinstance(v, bool) for v in value):
+            return '[' + ', '.join(_ros_arg(v) for v in value) + ']'
+        if value and all(isinstance(v, int) for v in value):
+            return '[' + ', '.join(str(v) for v in value) + ']'
         return '[' + ', '.join(f'{float(v):.17e}' for v in value) + ']'
     return repr(value)
 
@@ -140,8 +156,9 @@ class _Collector:
         from rclpy.node import Node
 
         from eha_ros.msg import ActuatorCommand, ActuatorState, HealthStatus, ServovalveCommand
-        from eha_ros.nodes.common import (TOPIC_COMMAND, TOPIC_HEALTH, TOPIC_SERVOVALVE,
-                                          TOPIC_STATE, subscribe)
+        from eha_ros.graph import (TOPIC_COMMAND, TOPIC_DIAGNOSTICS, TOPIC_HEALTH,
+                                   TOPIC_SERVOVALVE, TOPIC_STATE)
+        from eha_ros.nodes.common import subscribe
         self.node = Node('eha_harness_collector', context=context,
                          start_parameter_services=False)
         self.states, self.commands, self.currents, self.health = [], [], [], []
@@ -158,6 +175,16 @@ class _Collector:
         subscribe(self.node, ActuatorCommand, TOPIC_COMMAND, self.commands.append)
         subscribe(self.node, ServovalveCommand, TOPIC_SERVOVALVE, on_current)
         subscribe(self.node, HealthStatus, TOPIC_HEALTH, self.health.append)
+        self.diagnostics = {}
+
+        def on_diagnostics(msg):
+            for st in msg.status:
+                self.diagnostics[st.name] = {
+                    'level': int.from_bytes(st.level, 'little') if isinstance(st.level, bytes)
+                    else int(st.level), 'message': st.message,
+                    'values': {kv.key: kv.value for kv in st.values}}
+        from diagnostic_msgs.msg import DiagnosticArray
+        subscribe(self.node, DiagnosticArray, TOPIC_DIAGNOSTICS, on_diagnostics)
 
     def set_parameters(self, executor, target: str, values: dict, timeout_s: float = 10.0):
         """Set parameters of node ``target`` through its parameter service."""
@@ -216,18 +243,23 @@ class _Collector:
                  'current_command_a': np.array([m.current_command_a for m in self.currents]),
                  'arrival_s': np.array(self.current_arrival)}
         return GraphResult(state, command, servo, list(self.health), wall, config,
-                           self.resent)
+                           self.resent, diagnostics=dict(self.diagnostics))
 
 
 def run_graph(config: GraphConfig | None = None, processes: bool = True, env: dict | None = None,
-              timeout_s: float = 300.0, log_dir: str | None = None) -> GraphResult:
+              timeout_s: float = 300.0, log_dir: str | None = None, stop=None,
+              on_start=None) -> GraphResult:
     """Run ``config`` until the plant has simulated its duration; see the module docstring.
 
     ``env`` (e.g. from :func:`eha_ros.isolation.ros_environment`) sets ``ROS_DOMAIN_ID`` and
-    ``ROS_LOG_DIR``; default: the current environment.  Raises :class:`GraphError` when a node
-    exits early or the run stalls for ``timeout_s``.
+    ``ROS_LOG_DIR``; default: the current environment.  ``stop``: a callable checked every
+    50 ms; when it returns true the run ends early (``GraphResult.interrupted``) and every node
+    is stopped as after a complete run.  ``on_start(pids)``: called once the nodes are started,
+    with ``{name: pid}`` of the node processes.  Raises :class:`GraphError` when a node exits
+    early or the run stalls for ``timeout_s``.
     """
     import rclpy
+    from rclpy.signals import SignalHandlerOptions
 
     from eha_ros.graph import STATUS_DIVERGED
     from eha_ros.nodes.common import QOS, make_executor
@@ -247,7 +279,9 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
     failure = None  # why a node failed, raised once everything is stopped
     os.environ.update({k: env[k] for k in saved if k in env})
     try:
-        rclpy.init(context=context, domain_id=domain)
+        # no rclpy signal handlers: SIGINT reaches the caller (``stop``, KeyboardInterrupt)
+        rclpy.init(context=context, domain_id=domain,
+                   signal_handler_options=SignalHandlerOptions.NO)
         executor = make_executor(context)
         collector = _Collector(context, QOS)
         executor.add_node(collector.node)
@@ -283,10 +317,16 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
                 node = classes[name](context=context, parameter_overrides=overrides)
                 nodes.append(node)
                 executor.add_node(node)
+        if on_start is not None:
+            on_start({name: proc.pid for name, (proc, _) in procs.items()})
         last_progress, last_count = time.monotonic(), 0
         events = sorted(config.events, key=lambda e: e[0])
+        interrupted = False
         while True:
             executor.spin_once(timeout_sec=0.05)
+            if stop is not None and stop():
+                interrupted = True
+                break
             states = collector.states
             while events and states and states[-1].sim_time_s >= events[0][0]:
                 _, target, values = events.pop(0)
@@ -311,6 +351,7 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
         while time.monotonic() < end:
             executor.spin_once(timeout_sec=0.02)
         result = collector.result(config, time.monotonic() - t0)
+        result.interrupted = interrupted
     finally:
         for name, (proc, out) in procs.items():
             if proc.poll() is None:

@@ -393,7 +393,7 @@ def bad_inputs(tmp_path):
     return paths, good
 
 
-@pytest.mark.parametrize('case', ['truncated', 'corrupt', 'not_mcap', 'empty', 'missing'])
+@pytest.mark.parametrize('case', ['corrupt', 'not_mcap', 'empty', 'missing'])
 def test_replay_and_compare_reject_bad_input(case, bad_inputs, tmp_path, capsys):
     from eha_ros.recording import compare, replay
 
@@ -403,6 +403,36 @@ def test_replay_and_compare_reject_bad_input(case, bad_inputs, tmp_path, capsys)
     assert compare.main([str(good), str(paths[case]), '--out', str(tmp_path / 'plots')]) == 2
     _one_line_error(capsys.readouterr().err, 'eha-compare')
     assert not (tmp_path / 'plots').exists()
+
+
+def test_offline_tools_read_a_truncated_file_with_one_warning(bad_inputs, ros_env, tmp_path,
+                                                              capsys):
+    """A killed recorder's file (cut inside its third chunk): compare, diagnose and replay read
+    the 100 messages of its two complete chunks, and say so in one line naming eha-recover."""
+    from eha_ros.recording import compare
+    from eha_ros.tools.diagnose import diagnose
+
+    paths, good = bad_inputs
+    cut = paths['truncated']
+    assert compare.main([str(good), str(cut), '--out', str(tmp_path / 'plots')]) == 0
+    warning = [line for line in capsys.readouterr().err.splitlines() if 'warning' in line]
+    assert len(warning) == 1 and warning[0].startswith('eha-compare: warning:')
+    assert 'using the 100 /eha/state messages' in warning[0]
+    assert f'eha-recover {cut} -o' in warning[0]
+    from eha_ros.physics import ParameterError
+    try:
+        diagnose(cut)
+    except ParameterError:
+        pass  # 100 synthetic states need not make an estimate; the warning is what counts
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[0].startswith('eha-diagnose: warning:') and 'using the 100' in err[0]
+    result = subprocess.run([str(BIN / 'eha-replay'), str(cut), '--rate', '10'], env=ros_env,
+                            cwd=tmp_path, text=True, capture_output=True,
+                            timeout=PROCESS_TIMEOUT_S)
+    assert result.returncode == 0, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert lines[0].startswith('eha-replay: warning:') and 'using the 100 messages' in lines[0]
+    assert 'replayed 100 messages' in lines[-1]
 
 
 def test_replay_rejects_missing_topics(bad_inputs, tmp_path, capsys):
@@ -422,7 +452,7 @@ def test_replay_rejects_missing_topics(bad_inputs, tmp_path, capsys):
 
 def test_console_scripts_reject_bad_input(bad_inputs, ros_env, tmp_path):
     paths, good = bad_inputs
-    for command, prog in (([str(BIN / 'eha-replay'), str(paths['truncated'])], 'eha-replay'),
+    for command, prog in (([str(BIN / 'eha-replay'), str(paths['corrupt'])], 'eha-replay'),
                           ([str(BIN / 'eha-compare'), str(good), str(paths['not_mcap'])],
                            'eha-compare')):
         result = subprocess.run(command, env=ros_env, cwd=tmp_path, text=True,
@@ -700,3 +730,126 @@ def test_compare_reports_closed_form_errors_and_plots(tmp_path, capsys):
     assert compare.main(args + ['--force', '--reference', 'lut']) == 0
     table = capsys.readouterr().out
     assert table.startswith('reference: lut') and 'hf' in table and 'nn' in table
+
+
+# --- eha-recover ------------------------------------------------------------------------------
+
+def _rosbags_messages(path):
+    """Every message of a file through rosbags (an independent reader), decoded."""
+    from rosbags.highlevel import AnyReader
+
+    with AnyReader([Path(path)]) as reader:
+        return [(conn.topic, reader.deserialize(raw, conn.msgtype))
+                for conn, _, raw in reader.messages()]
+
+
+def test_recover_rewrites_a_truncated_file_complete(bad_inputs, tmp_path):
+    from mcap.reader import make_reader
+
+    from eha_ros.recording.recover import recover
+
+    paths, _ = bad_inputs
+    with pytest.raises(Exception, match='File end magic'):  # what rosbags says of a cut file
+        _rosbags_messages(paths['truncated'])
+    out = tmp_path / 'fixed.mcap'
+    result = recover(paths['truncated'], out)
+    assert result['messages'] == {graph.TOPIC_STATE: 100} and not result['source_complete']
+    summary = make_reader(open(out, 'rb')).get_summary()
+    assert summary.statistics.message_count == 100 and summary.chunk_indexes
+    decoded = _rosbags_messages(out)
+    assert [m.tick for _, m in decoded] == list(range(100))
+    info = scan(out, strict=True)
+    assert info.complete and info.lost_messages() == {graph.TOPIC_STATE: 0}
+    assert info.rosbag2_metadata()['message_count'] == 100
+    assert info.run_info()['recovered']['source'] == str(paths['truncated'])
+    assert 'truncated' in info.run_info()['recovered']['problem']
+
+
+def test_recover_cli_bad_input(bad_inputs, tmp_path, capsys):
+    from eha_ros.recording import recover
+
+    paths, good = bad_inputs
+    out = tmp_path / 'out.mcap'
+    for source in ('not_mcap', 'empty', 'missing', 'corrupt'):
+        code = recover.main([str(paths[source]), '-o', str(out)])
+        err = capsys.readouterr().err
+        if source == 'corrupt':  # damaged inside: the messages before the damage are kept
+            assert code == 0 and out.is_file(), err
+            assert 0 < scan(out, strict=True).message_counts[graph.TOPIC_STATE] < 200
+            out.unlink()
+            continue
+        assert code == 2 and not out.exists(), source
+        _one_line_error(err, 'eha-recover')
+    out.write_bytes(b'keep')
+    assert recover.main([str(good), '-o', str(out)]) == 2 and out.read_bytes() == b'keep'
+    _one_line_error(capsys.readouterr().err, 'eha-recover')
+    assert recover.main([str(good), '-o', str(good)]) == 2
+    _one_line_error(capsys.readouterr().err, 'eha-recover')
+
+
+def test_sigkilled_recorder_is_recovered_with_its_losses(ros_env, tmp_path):
+    """SIGKILL a recorder that has lost messages (frozen during a burst to a depth-1 reader):
+    after eha-recover, rosbags decodes every message the killed file held, the ticks before
+    its last flushed chunk are all there but the lost ones, and the loss count is stored."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    from eha_ros.msg import ActuatorState
+
+    output = tmp_path / 'killed.mcap'
+    recorder = _start_recorder(output, ros_env, tmp_path, '--topics', graph.TOPIC_STATE,
+                               '--ros-args', '-p', 'flush_interval_s:=0.02')
+    published = 0
+
+    def recorded():
+        try:
+            return scan(output).message_counts.get(graph.TOPIC_STATE, 0)
+        except (OSError, mcap_io.RecordingError):  # not created, or not even its header yet
+            return 0
+
+    try:
+        with ros_node('recording_test_kill') as (node, _):
+            pub = node.create_publisher(ActuatorState, graph.TOPIC_STATE,
+                                        QoSProfile(depth=1,
+                                                   reliability=ReliabilityPolicy.RELIABLE))
+            _wait_matched([pub])
+
+            def send_until(condition, pause_s=0.002):
+                nonlocal published
+                deadline = time.monotonic() + PROCESS_TIMEOUT_S
+                while not condition():
+                    assert time.monotonic() < deadline, 'the recorder wrote no chunk'
+                    published += 1
+                    pub.publish(ActuatorState(tick=published))
+                    time.sleep(pause_s)
+
+            send_until(lambda: recorded() > 0)
+            os.kill(recorder.pid, signal.SIGSTOP)
+            try:
+                for _ in range(3000):
+                    published += 1
+                    pub.publish(ActuatorState(tick=published))
+            finally:
+                os.kill(recorder.pid, signal.SIGCONT)
+            burst_end = published
+            send_until(lambda: mcap_io.load_topic_arrays(
+                output, graph.TOPIC_STATE)['tick'][-1] > burst_end)
+            os.kill(recorder.pid, signal.SIGKILL)
+    finally:
+        _stop(recorder, signal.SIGKILL)
+    assert recorder.returncode == -signal.SIGKILL
+    killed = scan(output)
+    assert not killed.complete
+    fixed = tmp_path / 'fixed.mcap'
+    result = subprocess.run([str(BIN / 'eha-recover'), str(output), '-o', str(fixed)],
+                            env=ros_env, cwd=tmp_path, text=True, capture_output=True,
+                            timeout=PROCESS_TIMEOUT_S)
+    assert result.returncode == 0, result.stderr
+    decoded = _rosbags_messages(fixed)
+    ticks = np.array([m.tick for _, m in decoded])
+    assert ticks.size == killed.message_counts[graph.TOPIC_STATE]
+    assert np.all(np.diff(ticks) >= 1) and ticks[-1] > burst_end
+    info = scan(fixed, strict=True)
+    lost = info.lost_messages()[graph.TOPIC_STATE]
+    assert lost > 0 and lost == int(np.sum(np.diff(ticks) - 1))
+    assert info.run_info()['recovered']['loss_counted_from'][graph.TOPIC_STATE].startswith(
+        'sequence numbers')

@@ -3,15 +3,16 @@ of a recording as numpy arrays for analysis (no ``rclpy`` needed)."""
 
 from __future__ import annotations
 
+import sys
 from typing import Any, Dict, List
 
 import numpy as np
 
 from eha_ros.recording.definitions import (describe_source as _describe, MissingTopicError,
-                                           RecordingError)
+                                           RecordingError, TruncatedError)
 from eha_ros.recording.reader import McapReader
 
-__all__ = ['message_to_dict', 'flatten', 'load_topic_arrays']
+__all__ = ['message_to_dict', 'flatten', 'load_topic_arrays', 'load_for_tool', 'truncation_warning']
 
 def _is_rclpy_message(msg) -> bool:
     return hasattr(type(msg), 'get_fields_and_field_types')
@@ -140,3 +141,23 @@ def load_topic_arrays(source, topic: str, *, strict: bool = False) -> Dict[str, 
         else:
             out[key] = np.asarray(values, dtype=object)
     return out
+
+
+def truncation_warning(prog: str, source, problem: str, count: int, what: str) -> str:
+    """The offline tools' one line for a truncated recording: what it holds, how to repair it."""
+    return (f'{prog}: warning: {" ".join(str(problem).split())}; using the {count} {what} '
+            f'before it (to repair the file: eha-recover {_describe(source)} -o FIXED.mcap)')
+
+
+def load_for_tool(source, topic: str, prog: str, file=None) -> Dict[str, np.ndarray]:
+    """:func:`load_topic_arrays` as the offline tools use it: a damaged file raises, a
+    truncated one (a killed recorder's) is read up to its last complete chunk with one
+    warning line on ``file`` (stderr) naming the count of messages recovered and
+    ``eha-recover``."""
+    try:
+        return load_topic_arrays(source, topic, strict=True)
+    except TruncatedError as exc:
+        arrays = load_topic_arrays(source, topic, strict=False)
+        print(truncation_warning(prog, source, str(exc), int(arrays['log_time_ns'].size),
+                                 f'{topic} messages'), file=file or sys.stderr)
+        return arrays

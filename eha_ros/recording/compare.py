@@ -40,7 +40,7 @@ from typing import Dict, List, NamedTuple, Optional, Sequence
 import numpy as np
 
 from eha_ros.graph import TOPIC_STATE
-from eha_ros.recording.arrays import load_topic_arrays
+from eha_ros.recording.arrays import load_for_tool
 from eha_ros.recording.definitions import RecordingError
 
 __all__ = ['SIGNALS', 'Run', 'load_run', 'relative_error', 'compare_runs', 'plot_runs', 'main']
@@ -79,7 +79,7 @@ def load_run(path: str, topic: str = TOPIC_STATE) -> Run:
         If the file cannot be read or has no messages on ``topic``.
     """
     try:
-        arrays = load_topic_arrays(path, topic, strict=True)
+        arrays = load_for_tool(path, topic, PROG)
     except RecordingError as exc:  # unreadable, corrupt, or without the topic
         raise CompareError(str(exc)) from None
     if arrays['log_time_ns'].size == 0:

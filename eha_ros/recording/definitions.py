@@ -19,7 +19,8 @@ import yaml
 from eha_ros.graph import normalize_type
 
 __all__ = ['PROFILE', 'SCHEMA_ENCODING', 'MESSAGE_ENCODING', 'RUN_METADATA_NAME',
-           'ROSBAG2_METADATA_NAME', 'ROSBAG2_METADATA_VERSION', 'MCAP_MAGIC', 'RecordingError',
+           'ROSBAG2_METADATA_NAME', 'ROSBAG2_METADATA_VERSION', 'MCAP_MAGIC',
+           'PROGRESS_METADATA_NAME', 'RecordingError',
            'NotMcapError', 'TruncatedError', 'CorruptError', 'MissingTopicError',
            'message_definition', 'type_hash', 'qos_profile_dict', 'qos_profiles_yaml',
            'count_sequence_gaps', 'SequenceGapCounter', 'describe_source']
@@ -31,6 +32,9 @@ MESSAGE_ENCODING = 'cdr'
 ROSBAG2_METADATA_NAME = 'rosbag2'
 #: Name of this package's metadata record: lost messages and run info.
 RUN_METADATA_NAME = 'eha_ros'
+#: Name of the records a writer adds after each flushed chunk (lost and recorded so far), so a
+#: killed recorder's file still says what it had lost (``eha-recover`` reads the last one).
+PROGRESS_METADATA_NAME = 'eha_ros_progress'
 #: Version of rosbag2's bag metadata written into ``serialized_metadata`` (Jazzy, Kilted).
 ROSBAG2_METADATA_VERSION = 9
 

@@ -48,6 +48,7 @@ import time
 from typing import Dict, List, Optional, Sequence
 
 import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -67,6 +68,20 @@ LOSS_DETECTION = 'publication_sequence_number'
 #: After a stop request, keep taking messages until none arrived for this long (s).
 _DRAIN_QUIET_S = 0.1
 _DRAIN_MAX_S = 2.0
+
+
+#: The recorder's parameters: ``name -> (default, description)`` (the module docstring's table).
+RECORDER_PARAMETERS = {
+    'output': ('', "MCAP file to create (never overwritten); '': eha_<date>-<time>.mcap"),
+    'topics': (list(graph.TOPICS), 'topics to record, each a graph topic (moved to namespace)'),
+    'namespace': (graph.NAMESPACE, "namespace of the actuator's topics"),
+    'queue_depth': (1000, 'subscription history depth [samples]'),
+    'chunk_size': (1 << 20, 'uncompressed bytes per MCAP chunk [B]'),
+    'compression': ('auto', 'chunk compression: auto, zstd, lz4 or none'),
+    'flush_interval_s': (1.0, 'longest time a received message stays in memory [s]'),
+    'duration_s': (0.0, 'stop after this long [s] (0: until SIGINT/SIGTERM)'),
+    'batch_period_s': (0.005, 'pause after taking messages so the next take finds a batch [s]'),
+}
 
 
 class RecorderError(ValueError):
@@ -130,16 +145,20 @@ class Recorder(Node):
     def __init__(self, *, parameter_overrides: Optional[list] = None, **kwargs):
         super().__init__(NODE_NAME, parameter_overrides=parameter_overrides or [],
                          **kwargs)
-        self.output = self.declare_parameter('output', '').value or default_output()
-        namespace = self.declare_parameter('namespace', graph.NAMESPACE).value
-        requested = self.declare_parameter(
-            'topics', list(graph.topics_in(namespace))).value
-        queue_depth = int(self.declare_parameter('queue_depth', 1000).value)
-        chunk_size = int(self.declare_parameter('chunk_size', 1 << 20).value)
-        compression = self.declare_parameter('compression', 'auto').value
-        flush_interval_s = float(self.declare_parameter('flush_interval_s', 1.0).value)
-        self.duration_s = float(self.declare_parameter('duration_s', 0.0).value)
-        self.batch_period_s = float(self.declare_parameter('batch_period_s', 0.005).value)
+        value = {name: self.declare_parameter(
+            name, default, ParameterDescriptor(description=text)).value
+            for name, (default, text) in RECORDER_PARAMETERS.items()}
+        self.output = value['output'] or default_output()
+        namespace = value['namespace']
+        requested = value['topics']
+        if list(requested) == list(graph.TOPICS):  # the default: every topic, in namespace
+            requested = list(graph.topics_in(namespace))
+        queue_depth = int(value['queue_depth'])
+        chunk_size = int(value['chunk_size'])
+        compression = value['compression']
+        flush_interval_s = float(value['flush_interval_s'])
+        self.duration_s = float(value['duration_s'])
+        self.batch_period_s = float(value['batch_period_s'])
         if not 0.0 <= self.batch_period_s <= 0.1:
             raise RecorderError(f'batch_period_s must be in [0, 0.1], got '
                                 f'{self.batch_period_s}')
@@ -164,6 +183,7 @@ class Recorder(Node):
         self.started_ns = time.time_ns()
         self.writer = McapWriter(path, chunk_size=chunk_size, compression=compression,
                                  flush_interval_s=flush_interval_s)
+        self.writer.progress = self._progress
         self.last_message_monotonic = time.monotonic()
         self.received = 0
         self._states: Dict[str, _TopicState] = {}
@@ -219,6 +239,26 @@ class Recorder(Node):
     def lost_counts(self) -> Dict[str, int]:
         return {t: s.counter.lost for t, s in self._states.items()}
 
+    def _run_info(self) -> dict:
+        return {
+            'node': self.get_fully_qualified_name(),
+            'host': socket.gethostname(),
+            'argv': sys.argv,
+            'started_ns': self.started_ns,
+            'rmw_implementation': os.environ.get('RMW_IMPLEMENTATION', ''),
+            'ros_domain_id': os.environ.get('ROS_DOMAIN_ID', '0'),
+            'loss_detection': {t: LOSS_DETECTION if s.sequence_numbers else 'unavailable'
+                               for t, s in self._states.items()},
+            'missed_at_start': {t: s.counter.missed_at_start
+                                for t, s in self._states.items()},
+            'publishers': {t: s.counter.publishers for t, s in self._states.items()},
+        }
+
+    def _progress(self) -> dict:
+        """What a killed recorder's file keeps (after each chunk): losses so far, run info."""
+        return {'lost': self.lost_counts(), 'recorded': dict(self.writer.message_counts),
+                'run': dict(self._run_info(), progress_ns=time.time_ns())}
+
     def close(self) -> None:
         """Register silent topics, store lost counts and run info, close the file."""
         if self.writer.closed:
@@ -228,20 +268,7 @@ class Recorder(Node):
                 self._register(state)
         stopped_ns = time.time_ns()
         self.writer.lost_counts = self.lost_counts()
-        self.writer.run_info.update({
-            'node': self.get_fully_qualified_name(),
-            'host': socket.gethostname(),
-            'argv': sys.argv,
-            'started_ns': self.started_ns,
-            'stopped_ns': stopped_ns,
-            'rmw_implementation': os.environ.get('RMW_IMPLEMENTATION', ''),
-            'ros_domain_id': os.environ.get('ROS_DOMAIN_ID', '0'),
-            'loss_detection': {t: LOSS_DETECTION if s.sequence_numbers else 'unavailable'
-                               for t, s in self._states.items()},
-            'missed_at_start': {t: s.counter.missed_at_start
-                                for t, s in self._states.items()},
-            'publishers': {t: s.counter.publishers for t, s in self._states.items()},
-        })
+        self.writer.run_info.update(self._run_info(), stopped_ns=stopped_ns)
         self.writer.close()
         log = self.get_logger()
         counts = self.writer.message_counts

@@ -30,7 +30,8 @@ from typing import Dict, List, Optional
 import yaml
 
 from eha_ros import graph
-from eha_ros.recording.definitions import RecordingError
+from eha_ros.recording.arrays import truncation_warning
+from eha_ros.recording.definitions import RecordingError, TruncatedError
 from eha_ros.recording.reader import McapReader, RecordingInfo, scan
 from eha_ros.recording.stop import StopRequest
 
@@ -127,7 +128,13 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f'{PROG}: error: --rate must be > 0, got {args.rate}', file=sys.stderr)
         return 2
     try:
-        info = scan(args.file, strict=True)
+        try:
+            info = scan(args.file, strict=True)
+        except TruncatedError as exc:  # a killed recorder's file: replay what it holds
+            info = scan(args.file)
+            print(truncation_warning(PROG, args.file, str(exc),
+                                     sum(info.message_counts.values()), 'messages'),
+                  file=sys.stderr)
         selected = select_topics(info, args.topics, args.namespace)
     except (RecordingError, ReplayError) as exc:
         print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
@@ -169,7 +176,8 @@ def main(argv: Optional[List[str]] = None) -> int:
             start = time.monotonic()
             first_log = None
             last_clock = None
-            reader = McapReader(args.file, topics=list(selected), decode=False, strict=True)
+            reader = McapReader(args.file, topics=list(selected), decode=False,
+                                strict=info.complete)
             for msg in reader:
                 if stop.requested:
                     break

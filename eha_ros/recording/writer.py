@@ -16,7 +16,8 @@ import yaml
 
 from eha_ros.graph import normalize_type
 from eha_ros.recording.definitions import (_MESSAGE_RECORD_OVERHEAD, MESSAGE_ENCODING,
-                                           message_definition, PROFILE, qos_profiles_yaml,
+                                           message_definition, PROFILE,
+                                           PROGRESS_METADATA_NAME, qos_profiles_yaml,
                                            ROSBAG2_METADATA_NAME, ROSBAG2_METADATA_VERSION,
                                            RUN_METADATA_NAME, SCHEMA_ENCODING, type_hash)
 
@@ -105,6 +106,9 @@ class McapWriter:
         self._last_log_ns: Optional[int] = None
         self.chunks_written = 0
         self.closed = False
+        #: Called after each flushed chunk: its ``{key: JSON-serialisable}`` is written as an
+        #: ``eha_ros_progress`` metadata record (None: no such records).
+        self.progress = None
 
     # context manager
     def __enter__(self) -> 'McapWriter':
@@ -202,9 +206,14 @@ class McapWriter:
 
     def flush(self) -> None:
         """Close the chunk in progress and write everything out (no ``fsync``)."""
-        if self._pending_bytes:
+        wrote = self._pending_bytes > 0
+        if wrote:
             self.chunks_written += 1
         self._writer.flush()
+        if wrote and self.progress is not None and not self.closed:
+            self._writer.add_metadata(PROGRESS_METADATA_NAME, {
+                k: json.dumps(v, sort_keys=True, default=str) for k, v in self.progress().items()})
+            self._stream.flush()
         self._pending_bytes = 0
         self._chunk_opened = time.monotonic()
 

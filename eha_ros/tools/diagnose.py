@@ -26,7 +26,7 @@ import numpy as np
 from eha_ros.graph import LEVEL_NAMES as LEVELS, STATUS_DIVERGED, STATUS_VALVE_TEST, TOPIC_STATE
 from eha_ros.physics import ParameterError, load_params
 from eha_ros.physics.valve_test import MAP_POINTS
-from eha_ros.recording.arrays import load_topic_arrays
+from eha_ros.recording.arrays import load_for_tool
 from eha_ros.recording.definitions import RecordingError
 from eha_ros.surrogates.base import SurrogateError
 from eha_ros.surrogates.health import (HealthThresholds, InServiceEstimator, ValveTestEstimator,
@@ -54,7 +54,7 @@ def diagnose(path, params=None, window_s=None, skip_s=0.05, max_samples=400, met
     test's curves if the recording has one, else the in-service fit), ``network`` or
     ``steady``."""
     try:
-        a = load_topic_arrays(path, TOPIC_STATE, strict=True)
+        a = load_for_tool(path, TOPIC_STATE, 'eha-diagnose')
     except RecordingError as exc:  # unreadable, corrupt, or without the topic
         raise ParameterError(str(exc)) from None
     needed = ('stamp_ns', 'spool_position_m', 'load_flow_m3_s', 'p12_pa')

@@ -1,0 +1,437 @@
+"""``eha-graph``: run one scenario through the node graph from the command line (no ros2 launch).
+
+Examples::
+
+    eha-graph --scenario sine_0p1_5pi --model hf --mode realtime --health --record run.mcap
+    eha-graph --scenario step_0p1 --set servovalve_plant.radial_clearance_m=4e-6 --json
+    eha-graph --params-file config/graph.yaml --one-process --duration 2
+    eha-graph --list                    # the scenarios
+    eha-graph --print-params            # every node's parameters and defaults, as graph.yaml
+
+It starts the command generator, the controller, the plant (and with ``--health`` the health
+monitor, with ``--record`` the recorder) on the same harness as the tests
+(:func:`eha_ros.harness.run_graph`), runs the scenario to its end (or ``--duration``), stops
+every node and prints a summary. Ctrl-C (SIGINT) or SIGTERM stops every node the same way,
+closes the recording and prints the summary of what ran.
+
+Parameters, lowest precedence first: the nodes' defaults, ``--params-file`` (ROS 2's
+``/node: ros__parameters:`` form, e.g. the installed ``config/graph.yaml``; ``/**`` applies to
+every node), the options (``--scenario``, ``--model``, ``--mode``, ``--seed``, ``--rate``,
+``--dt``), then ``--set node.name=value``. The harness owns the timing and start-up
+parameters (``mode``, ``use_sim_time``, ``start_subscribers``, ...): from a params file,
+``scenario``, ``model``, ``mode``, ``rate_hz``, ``dt_s`` and ``seed`` are taken as the options'
+defaults.
+
+Exit status: 0 after a complete run; 1 when a node failed (exited early, the plant diverged,
+the graph stalled, the recorder failed); 2 on bad input (unknown scenario, model or node,
+bad ``--set``, unreadable params file, existing output), one line on stderr; 130 after
+Ctrl-C/SIGTERM.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+import sys
+import textwrap
+
+import numpy as np
+import yaml
+
+from eha_ros import graph
+
+__all__ = ['main', 'read_params_file', 'node_defaults', 'defaults_yaml']
+
+PROG = 'eha-graph'
+
+#: Parameters the harness sets itself on every node; a params file or ``--set`` may not.
+MANAGED = frozenset(('mode', 'use_sim_time', 'start_subscribers', 'start_clock_subscribers',
+                     'duration_s', 'output', 'valve_test', 'valve_test_flows_m3_s'))
+
+#: Params-file entries taken as the options' defaults: ``(node, parameter) -> option``.
+PROMOTED = {('command_generator', 'scenario'): 'scenario', ('servovalve_plant', 'model'): 'model',
+            ('servovalve_plant', 'mode'): 'mode', ('servovalve_plant', 'rate_hz'): 'rate_hz',
+            ('servovalve_plant', 'dt_s'): 'dt_s', ('servovalve_plant', 'seed'): 'seed'}
+
+#: Parameters rclpy declares on every node that are not the graph's (read-only).
+RCLPY_OWN = frozenset(('start_type_description_service',))
+
+#: Nodes eha-graph starts (the recorder too, with ``--record``).
+GRAPH_NODES = graph.NODES + ('recorder',)
+
+
+class UsageError(ValueError):
+    """Bad input: reported on one line, exit status 2."""
+
+
+# --- parameters -----------------------------------------------------------------------------
+
+def read_params_file(path) -> dict:
+    """``{node: {parameter: value}}`` from a ROS 2 params file (``/node: ros__parameters:``).
+
+    ``/**`` (every node) is applied first, then each node's own section; a leading ``/`` on
+    the node name is optional. Raises :class:`UsageError` for an unreadable file, a section
+    without ``ros__parameters`` or an unknown node.
+    """
+    try:
+        data = yaml.safe_load(Path(path).read_text(encoding='utf-8'))
+    except OSError as exc:
+        raise UsageError(f'cannot read params file {path}: {exc.strerror or exc}') from None
+    except yaml.YAMLError as exc:
+        raise UsageError(f'params file {path} is not YAML: {" ".join(str(exc).split())}') \
+            from None
+    if not isinstance(data, dict):
+        raise UsageError(f'params file {path}: expected /node: ros__parameters: sections')
+    common, own = {}, {}
+    for key, section in data.items():
+        node = str(key).strip('/')
+        if not isinstance(section, dict) or not isinstance(section.get('ros__parameters'),
+                                                           dict):
+            raise UsageError(f'params file {path}: section {key!r} has no ros__parameters')
+        values = dict(section['ros__parameters'])
+        if node == '**':
+            common.update(values)
+        elif node in GRAPH_NODES:
+            own.setdefault(node, {}).update(values)
+        else:
+            raise UsageError(f'params file {path}: unknown node {key!r} (nodes: '
+                             f'{", ".join(GRAPH_NODES)})')
+    out = {}
+    for node in GRAPH_NODES:
+        if common or node in own:
+            out[node] = dict(common, **own.get(node, {}))
+    return out
+
+
+def _value(text: str):
+    """A ``--set`` value typed as ROS types ``-p name:=value``: integer, then floating point
+    (``4e-6`` too), ``true``/``false``, a ``[...]`` list of these, else a string."""
+    text = text.strip()
+    for convert in (int, float):
+        try:
+            return convert(text)
+        except ValueError:
+            pass
+    if text.lower() in ('true', 'false'):
+        return text.lower() == 'true'
+    if text.startswith('[') and text.endswith(']'):
+        return [_value(v) for v in text[1:-1].split(',') if v.strip()]
+    return text
+
+
+def parse_set(items) -> dict:
+    """``['node.name=value', ...]`` -> ``{node: {name: value}}``."""
+    out: dict = {}
+    for item in items or ():
+        target, sep, text = item.partition('=')
+        node, dot, name = target.partition('.')
+        if not sep or not dot or not name:
+            raise UsageError(f'--set {item!r}: expected node.parameter=value')
+        if node not in GRAPH_NODES:
+            raise UsageError(f'--set {item!r}: unknown node {node!r} (nodes: '
+                             f'{", ".join(GRAPH_NODES)})')
+        out.setdefault(node, {})[name] = _value(text)
+    return out
+
+
+def node_defaults(descriptions: bool = False) -> dict:
+    """Every node's declared parameters and defaults: ``{node: {name: value}}`` (with
+    ``descriptions``: ``{node: {name: (value, description)}}``), read from the nodes themselves
+    (each is built once in a private context, with no output written)."""
+    import rclpy
+
+    from eha_ros.nodes.command_generator import CommandGenerator
+    from eha_ros.nodes.controller import Controller
+    from eha_ros.nodes.health_monitor import HealthMonitor
+    from eha_ros.nodes.servovalve_plant import ServovalvePlant
+    from eha_ros.recording.recorder import RECORDER_PARAMETERS
+    classes = {'command_generator': CommandGenerator, 'controller': Controller,
+               'servovalve_plant': ServovalvePlant, 'health_monitor': HealthMonitor}
+    out = {}
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=0)
+    try:
+        for name, cls in classes.items():
+            node = cls(context=context, start_parameter_services=False)
+            try:
+                out[name] = {}
+                for pname in sorted(set(node._parameters) - RCLPY_OWN):
+                    value = node.get_parameter(pname).value
+                    if isinstance(value, (list, tuple)) or hasattr(value, 'tolist'):
+                        value = [v for v in (value.tolist() if hasattr(value, 'tolist')
+                                             else value)]
+                    desc = node.describe_parameter(pname).description
+                    out[name][pname] = (value, desc) if descriptions else value
+            finally:
+                close = getattr(node, 'close', None)
+                if close:
+                    close()
+                node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+    recorder = dict(RECORDER_PARAMETERS, use_sim_time=(False, ''))
+    out['recorder'] = {k: ((v, d) if descriptions else v) for k, (v, d) in sorted(recorder.items())}
+    return out
+
+
+def _yaml_scalar(value) -> str:
+    text = yaml.safe_dump(value, default_flow_style=True, width=1 << 16).strip()
+    return text[:-4].strip() if text.endswith('\n...') else text.removesuffix('...').strip()
+
+
+def defaults_yaml() -> str:
+    """``config/graph.yaml``: every node's parameters with their defaults and descriptions."""
+    lines = [
+        '# Every node of the actuator graph with all its parameters and their defaults, in ROS',
+        "# 2's params-file form. Generated by `eha-graph --print-params`; a test checks that it",
+        '# matches what the nodes declare.',
+        '#',
+        '#   servovalve_plant --ros-args --params-file config/graph.yaml',
+        '#   eha-graph --params-file config/graph.yaml [--set node.name=value]',
+        '#',
+        '# The physical parameters listed here (wear of the plant, gains of the controller) are',
+        '# the values of the installed config/eha_params.yaml; a value given here wins over the',
+        "# node's params_file. Units in brackets, SI.",
+    ]
+    for node, params in node_defaults(descriptions=True).items():
+        lines += ['', f'/{node}:', '  ros__parameters:']
+        for name, (value, desc) in params.items():
+            lines += [f'    # {line}' for line in textwrap.wrap(' '.join(desc.split()), 93)]
+            lines.append(f'    {name}: {_yaml_scalar(value)}')
+    return '\n'.join(lines) + '\n'
+
+
+# --- the run ----------------------------------------------------------------------------------
+
+def build_config(args):
+    """The :class:`~eha_ros.harness.GraphConfig` of the command line."""
+    from eha_ros.harness import GraphConfig
+    from eha_ros.physics import get_scenario, ParameterError
+
+    file_params = read_params_file(args.params_file) if args.params_file else {}
+    options = {'scenario': 'step_0p1', 'model': 'hf', 'mode': 'lockstep', 'rate_hz': 1000.0,
+               'dt_s': 1e-6, 'seed': 0}
+    for (node, name), option in PROMOTED.items():
+        if name in file_params.get(node, {}):
+            options[option] = file_params[node][name]
+    for option in options:
+        if getattr(args, option) is not None:
+            options[option] = getattr(args, option)
+    # a file's entries for what the harness owns are its defaults: left out
+    node_params = {n: {k: v for k, v in values.items()
+                       if k not in MANAGED and (n, k) not in PROMOTED}
+                   for n, values in file_params.items()}
+    for node, values in parse_set(args.set).items():
+        for name, value in values.items():
+            if (node, name) in PROMOTED:
+                options[PROMOTED[node, name]] = value
+            elif name in MANAGED:
+                raise UsageError(f'{node}.{name} is set by eha-graph itself (use --mode, '
+                                 '--duration, --record or a scenario)')
+            else:
+                node_params.setdefault(node, {})[name] = value
+    if options['mode'] not in graph.MODES:
+        raise UsageError(f'mode {options["mode"]!r} must be one of {", ".join(graph.MODES)}')
+    if options['model'] not in graph.MODELS:
+        raise UsageError(f'model {options["model"]!r} must be one of {", ".join(graph.MODELS)}')
+    try:
+        get_scenario(options['scenario'])
+    except (ParameterError, KeyError, ValueError) as exc:
+        raise UsageError(str(exc).strip('"')) from None
+    if args.duration is not None and not args.duration > 0:
+        raise UsageError(f'--duration must be > 0 s, got {args.duration}')
+    if args.record and Path(args.record).exists():
+        raise UsageError(f'{args.record} exists: refusing to overwrite it')
+    if args.record and not Path(args.record).resolve().parent.is_dir():
+        raise UsageError(f'folder of {args.record} does not exist')
+    return GraphConfig(scenario=options['scenario'], model=options['model'],
+                       mode=options['mode'], duration_s=args.duration,
+                       rate_hz=float(options['rate_hz']), dt_s=float(options['dt_s']),
+                       seed=int(options['seed']), health=args.health,
+                       record=args.record or '',
+                       node_params=node_params)
+
+
+def _missing(stamp_ns, rate_hz: float) -> int:
+    """Ticks between the first and the last state that never arrived."""
+    if stamp_ns.size < 2:
+        return 0
+    expected = int(round((stamp_ns.max() - stamp_ns.min()) * 1e-9 * rate_hz)) + 1
+    return max(0, expected - int(np.unique(stamp_ns).size))
+
+
+def summarize(result, processes: bool, recording_info=None) -> dict:
+    """The run's summary: what ran, how far, how fast, health, recording, node timing."""
+    cfg = result.config
+    st = result.state
+    ticks = st['tick']
+    out = {
+        'scenario': cfg.scenario, 'model': cfg.model, 'mode': cfg.mode,
+        'layout': 'processes' if processes else 'one-process',
+        'complete': not result.interrupted and result.sim_s >= cfg.resolved_duration() - 1e-9,
+        'interrupted': result.interrupted,
+        'simulated_s': result.sim_s, 'wall_s': result.wall_s,
+        'real_time_factor': result.sim_s / result.wall_s if result.wall_s > 0 else None,
+        'states': int(ticks.size),
+        'ticks_missing': _missing(st['stamp_ns'], cfg.rate_hz),
+        'current_commands': int(result.servovalve['current_command_a'].size),
+        'diverged': bool(st['status'].size and st['status'][-1] == graph.STATUS_DIVERGED),
+    }
+    if ticks.size:
+        out['final_jack_position_m'] = float(st['jack_position_m'][-1])
+        out['final_command_m'] = float(result.command['position_setpoint_m'][-1]) \
+            if result.command['position_setpoint_m'].size else None
+    if cfg.health:
+        last = result.health[-1] if result.health else None
+        out['health'] = None if last is None else {
+            'level': graph.LEVEL_NAMES[int(last.level)], 'message': last.message,
+            'method': last.method, 'radial_clearance_m': last.radial_clearance_m,
+            'radial_clearance_std_m': last.radial_clearance_std_m,
+            'overlap_m': last.overlap_m, 'overlap_std_m': last.overlap_std_m,
+            'estimates': len(result.health)}
+    if recording_info is not None:
+        out['recording'] = {'file': cfg.record, 'complete': recording_info.complete,
+                            'messages': recording_info.message_counts,
+                            'lost': recording_info.lost_messages()}
+    timing = {name.split(':')[0]: d['values'] for name, d in result.diagnostics.items()
+              if name.endswith(': timing')}
+    if timing:
+        out['timing'] = timing
+    return out
+
+
+def _print_text(summary: dict, out=sys.stdout) -> None:
+    s = summary
+    state = 'complete' if s['complete'] else ('interrupted' if s['interrupted'] else
+                                              'incomplete')
+    print(f'{PROG}: {s["scenario"]} model {s["model"]}, {s["mode"]}, {s["layout"]}: {state}',
+          file=out)
+    rtf = s['real_time_factor']
+    print(f'  simulated {s["simulated_s"]:.3f} s in {s["wall_s"]:.2f} s wall'
+          + (f' ({rtf:.2f} x real time)' if rtf else ''), file=out)
+    print(f'  {s["states"]} states ({s["ticks_missing"]} ticks missing), '
+          f'{s["current_commands"]} current commands'
+          + ('; the plant DIVERGED' if s['diverged'] else ''), file=out)
+    if 'final_jack_position_m' in s:
+        print(f'  jack at {s["final_jack_position_m"] * 1e3:.5f} mm, command '
+              f'{(s["final_command_m"] or 0.0) * 1e3:.5f} mm', file=out)
+    if 'health' in s:
+        h = s['health']
+        if h is None:
+            print('  health: no estimate published', file=out)
+        else:
+            print(f'  health [{h["level"]}] {h["message"]} (clearance '
+                  f'{h["radial_clearance_m"] * 1e6:.2f} +- {h["radial_clearance_std_m"] * 1e6:.2f}'
+                  f' um, overlap {h["overlap_m"] * 1e6:.2f} +- {h["overlap_std_m"] * 1e6:.2f} um,'
+                  f' {h["estimates"]} estimates)', file=out)
+    if 'recording' in s:
+        r = s['recording']
+        print(f'  recorded {sum(r["messages"].values())} messages to {r["file"]}, '
+              f'{sum(r["lost"].values())} lost'
+              + ('' if r['complete'] else ' (file INCOMPLETE: run eha-recover)'), file=out)
+    for node, values in s.get('timing', {}).items():
+        print(f'  {node} timing: ' + ', '.join(f'{k} {v}' for k, v in values.items()), file=out)
+
+
+def main(argv=None) -> int:
+    """Console script ``eha-graph``; returns the exit status."""
+    ap = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog='Exit status: 0 complete, 1 a node failed, 2 bad input, '
+                                        '130 interrupted.')
+    ap.add_argument('--scenario', help='named scenario (see --list; default step_0p1)')
+    ap.add_argument('--model', help=f'fluid block: {", ".join(graph.MODELS)} (default hf)')
+    ap.add_argument('--mode', help='realtime or lockstep (default lockstep)')
+    ap.add_argument('--health', action='store_true', help='start the health monitor')
+    ap.add_argument('--record', metavar='FILE.mcap', help='record every graph topic to FILE')
+    ap.add_argument('--set', action='append', metavar='NODE.NAME=VALUE',
+                    help='set a node parameter (repeatable), e.g. '
+                         'servovalve_plant.radial_clearance_m=4e-6')
+    ap.add_argument('--params-file', metavar='YAML',
+                    help='ROS 2 params file (/node: ros__parameters:), e.g. config/graph.yaml')
+    layout = ap.add_mutually_exclusive_group()
+    layout.add_argument('--processes', dest='processes', action='store_true', default=True,
+                        help='each node its own process (default)')
+    layout.add_argument('--one-process', dest='processes', action='store_false',
+                        help='every node in this process on one executor')
+    ap.add_argument('--duration', type=float, metavar='S',
+                    help='simulated seconds (default: the scenario\'s)')
+    ap.add_argument('--seed', type=int, help='seed of the torque-motor noise (default 0)')
+    ap.add_argument('--rate', dest='rate_hz', type=float, metavar='HZ',
+                    help='tick rate (default 1000)')
+    ap.add_argument('--dt', dest='dt_s', type=float, metavar='S',
+                    help='plant integration step (default 1e-6)')
+    ap.add_argument('--timeout', type=float, default=60.0, metavar='S',
+                    help='give up when no state arrives for S seconds (default 60)')
+    ap.add_argument('--isolated', action='store_true',
+                    help='run in a ROS domain of its own and a temporary log folder')
+    ap.add_argument('--json', action='store_true', help='print the summary as one JSON object')
+    ap.add_argument('--list', action='store_true', help='list the scenarios and exit')
+    ap.add_argument('--print-params', action='store_true',
+                    help="print every node's parameters and defaults (config/graph.yaml)")
+    args = ap.parse_args(argv)
+
+    if args.list:
+        from eha_ros.physics import load_scenarios
+        for name, sc in sorted(load_scenarios().items()):
+            print(f'{name:16s} {sc.waveform:6s} {sc.duration_s:5.2f} s  {sc.description}')
+        return 0
+    if args.print_params:
+        sys.stdout.write(defaults_yaml())
+        return 0
+    from rclpy.exceptions import ParameterException
+
+    from eha_ros.harness import GraphError, run_graph
+    from eha_ros.physics import ParameterError
+    from eha_ros.recording.stop import StopRequest
+    try:
+        config = build_config(args)
+    except (UsageError, ParameterError) as exc:
+        print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
+        return 2
+
+    def started(pids):
+        where = ', '.join(f'{n} (pid {p})' for n, p in pids.items()) or 'this process'
+        print(f'{PROG}: running {config.scenario} ({config.mode}): {where}; Ctrl-C stops',
+              file=sys.stderr, flush=True)
+
+    stop = StopRequest()
+    env_cm = None
+    try:
+        env = None
+        if args.isolated:
+            from eha_ros.isolation import ros_environment
+            env_cm = ros_environment()
+            env = env_cm.__enter__()
+        result = run_graph(config, processes=args.processes, env=env, timeout_s=args.timeout,
+                           stop=lambda: stop.requested, on_start=started)
+    except GraphError as exc:
+        print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
+        return 130 if stop.requested else 1
+    except (ParameterError, ParameterException, ValueError) as exc:  # refused (one process)
+        print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
+        return 2
+    finally:
+        stop.restore()
+        if env_cm is not None:
+            env_cm.__exit__(None, None, None)
+    info = None
+    if config.record:
+        from eha_ros.recording.reader import scan
+        info = scan(config.record)
+    summary = summarize(result, args.processes, info)
+    if args.json:
+        print(json.dumps(summary, default=float))
+    else:
+        _print_text(summary)
+    if result.interrupted:
+        return 130
+    if summary['diverged']:
+        print(f'{PROG}: error: the plant diverged at t = {result.sim_s:.6f} s', file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
