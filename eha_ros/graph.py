@@ -35,7 +35,7 @@ __all__ = ['NAMESPACE', 'TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOP
            'normalize_type', 'message_class', 'MODES', 'MODELS', 'REFERENCE_MODELS',
            'STATUS_OK', 'STATUS_END_STOP', 'STATUS_CAVITATION', 'STATUS_DIVERGED',
            'STATUS_VALVE_TEST', 'STATUS_NAMES', 'LEVEL_OK', 'LEVEL_WARN', 'LEVEL_ERROR',
-           'LEVEL_NAMES', 'REFERENCE_SCENARIOS', 'NODES']
+           'LEVEL_NAMES', 'REFERENCE_SCENARIOS', 'NODES', 'TIMING_SUFFIX']
 
 #: Default namespace of the actuator's own topics (``/diagnostics`` and ``/clock`` are global).
 NAMESPACE = '/eha'
@@ -90,6 +90,10 @@ STATUS_CAVITATION = 2
 STATUS_DIVERGED = 3
 STATUS_VALVE_TEST = 4
 STATUS_NAMES = ('OK', 'END_STOP', 'CAVITATION', 'DIVERGED', 'VALVE_TEST')
+
+#: Name of a node's timing status on ``/diagnostics``: ``'<node>: timing'`` (the health
+#: monitor's statuses have other names).
+TIMING_SUFFIX = ': timing'
 
 #: Health levels (``HealthStatus.level``, the message's ``LEVEL_*`` constants).
 LEVEL_OK = 0

@@ -38,6 +38,11 @@ STATE_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_
                 'load_flow_m3_s', 'coil_current_a', 'torque_motor_force_n', 'sim_time_s')
 
 
+#: After a stop request, how long node processes get to end on their own before the harness
+#: signals them (s): a second SIGINT could hit a recorder after it restored its handlers.
+_GRACE_S = 3.0
+
+
 class GraphError(RuntimeError):
     """The graph did not start, stalled, or a node failed."""
 
@@ -277,6 +282,7 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
     context = rclpy.Context()
     executor = collector = None
     failure = None  # why a node failed, raised once everything is stopped
+    interrupted = False
     os.environ.update({k: env[k] for k in saved if k in env})
     try:
         # no rclpy signal handlers: SIGINT reaches the caller (``stop``, KeyboardInterrupt)
@@ -321,7 +327,6 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
             on_start({name: proc.pid for name, (proc, _) in procs.items()})
         last_progress, last_count = time.monotonic(), 0
         events = sorted(config.events, key=lambda e: e[0])
-        interrupted = False
         while True:
             executor.spin_once(timeout_sec=0.05)
             if stop is not None and stop():
@@ -353,6 +358,10 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
         result = collector.result(config, time.monotonic() - t0)
         result.interrupted = interrupted
     finally:
+        if interrupted:  # a terminal's Ctrl-C reached the nodes too: let them stop on their own
+            end = time.monotonic() + _GRACE_S
+            while time.monotonic() < end and any(p.poll() is None for p, _ in procs.values()):
+                time.sleep(0.05)
         for name, (proc, out) in procs.items():
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)

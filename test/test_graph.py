@@ -141,9 +141,27 @@ def test_realtime_processes_run_prints_a_summary(ros_env, tmp_path):
     assert 'states' in out.stdout
 
 
+#: Nodes that report their timing on /diagnostics.
+TICKING = ('command_generator', 'controller', 'servovalve_plant')
+
+
+def _timing_reports(path):
+    """The last report of each status name on /diagnostics in a recording ({} if unreadable)."""
+    from eha_ros.recording.reader import iter_decoded
+    reports = {}
+    try:
+        for msg in iter_decoded(path, topics=[graph.TOPIC_DIAGNOSTICS]):
+            for st in msg.message.status:
+                reports[st.name] = {kv.key: kv.value for kv in st.values}
+    except (OSError, RecordingError):  # not created yet, or only its header
+        pass
+    return reports
+
+
 def test_ctrl_c_stops_every_node_and_keeps_the_recording(ros_env, tmp_path):
     """SIGINT to the process group (a terminal's Ctrl-C) in the middle of a realtime run:
-    every node process ends, the recording is closed complete, the exit status is 130."""
+    every node process ends, the recording is closed complete, the exit status is 130. The
+    recording holds each node's timing report from /diagnostics."""
     record = tmp_path / 'run.mcap'
     proc = subprocess.Popen([str(BIN / 'eha-graph'), '--mode', 'realtime', '--scenario',
                              'sine_0p1_5pi', '--duration', '120', '--record', str(record)],
@@ -157,14 +175,9 @@ def test_ctrl_c_stops_every_node_and_keeps_the_recording(ros_env, tmp_path):
         pids = [int(p) for p in line.replace(')', ' ').split('pid ')[1:] for p in [p.split()[0]]]
         assert len(pids) == 4  # command generator, controller, plant, recorder
         deadline = time.monotonic() + TIMEOUT_S
-        while True:  # until the recorder has written states
-            assert time.monotonic() < deadline
-            try:
-                if scan(record).message_counts.get(graph.TOPIC_STATE, 0) > 0:
-                    break
-            except (OSError, RecordingError):  # not created, or only its header yet
-                pass
-            time.sleep(0.1)
+        while _timing_reports(record).keys() < {f'{n}: timing' for n in TICKING}:
+            assert time.monotonic() < deadline  # until every node's timing is recorded
+            time.sleep(0.2)
         os.killpg(proc.pid, signal.SIGINT)
         stdout, stderr = proc.communicate(timeout=TIMEOUT_S)
     finally:
@@ -178,6 +191,13 @@ def test_ctrl_c_stops_every_node_and_keeps_the_recording(ros_env, tmp_path):
         ).split()[2], pid
     info = scan(record, strict=True)
     assert info.complete and info.message_counts[graph.TOPIC_STATE] > 0
+    reports = _timing_reports(record)
+    for node in TICKING:
+        values = reports[f'{node}: timing']
+        for key in ('Actual frequency (Hz)', 'Target frequency (Hz)', 'Events in window',
+                    'Period jitter p99 (ms)', 'Slipped ticks since startup',
+                    'Overruns since startup', 'On time since startup (%)'):
+            assert float(values[key]) >= 0, (node, key)
 
 
 def test_a_failing_node_gives_a_non_zero_exit(ros_env, tmp_path):

@@ -207,7 +207,7 @@ def test_realtime_controller_trigger(ros_env, trigger, per_state):
         if per_state:
             kp = node.params.kp_a_m
             assert sent[-1].current_command_a == pytest.approx(kp * (1e-4 - 2e-5))
-        assert len(list(node.timers)) == 1 - per_state
+        assert len([t for t in node.timers if t is not node.timing.timer]) == 1 - per_state
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
@@ -263,3 +263,47 @@ def test_run_graph_restores_everything_when_a_node_fails(ros_env, monkeypatch, t
         run_graph(GraphConfig(duration_s=0.01, plant={'radial_clearance_m': 0.0}),
                   processes=False, env=env)
     assert dict(os.environ) == before
+
+
+def test_tick_timing_counts_late_slipped_and_overrun_ticks(ros_env):
+    """The timing report of a 1 kHz schedule fed with chosen times: a timer call 0.5 period
+    late is on time, one 2.7 periods late slipped 2 ticks, a caught-up tick run 1.2 periods
+    after it fell due is late, a callback of 1.5 periods is an overrun; rate and jitter
+    follow, and the level is graded as diagnostic_updater's FrequencyStatus grades it."""
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from rclpy.node import Node
+
+    from eha_ros.nodes.common import TickTiming
+    ms = 1_000_000
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+    try:
+        node = Node('timing_test', context=ctx)
+        timing = TickTiming(node, 1000.0, realtime=True)
+        assert timing.name == 'timing_test: timing'
+        timing._w_start = 0
+        for t in (0, 1 * ms, 2 * ms + ms // 2, 5 * ms + 7 * ms // 10):
+            timing.on_schedule(t)
+        timing.tick(6 * ms, 12 * ms // 10)
+        timing.busy(0, 3 * ms // 2)
+        timing.busy(0, ms // 2)
+        v = timing.values(now_ns=10 * ms)
+        assert v['Events since startup'] == 5 and v['Events in window'] == 5
+        assert v['Slipped ticks since startup'] == 2   # the ticks due at 3 and 4 ms
+        assert v['Late ticks since startup'] == 1
+        assert v['On time since startup (%)'] == pytest.approx(100 * 4 / 7, abs=1e-3)
+        assert v['Overruns since startup'] == 1
+        assert v['Actual frequency (Hz)'] == pytest.approx(500.0)
+        assert v['Period jitter max (ms)'] == pytest.approx(2.2)  # 3.2 ms between two ticks
+        assert v['Busy (core)'] == pytest.approx(0.2)
+        assert timing._level[0] == DiagnosticStatus.WARN
+        for t in range(1000):  # a clean second: OK
+            timing.tick(20 * ms + t * ms, 0)
+        timing.values(now_ns=20 * ms + 1000 * ms)
+        assert timing._level == (DiagnosticStatus.OK, 'Desired frequency met.')
+        timing.values(now_ns=3000 * ms)
+        assert timing._level == (DiagnosticStatus.ERROR, 'No events recorded.')
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)

@@ -117,3 +117,14 @@ def test_simulate_cli_bad_input_one_line_and_exit_code(tmp_path):
                          capture_output=True, text=True, cwd=tmp_path)
     assert out.returncode == 2 and 'refusing to overwrite' in out.stderr
     assert existing.read_bytes() == b'precious'
+
+
+@pytest.mark.parametrize('name, value', [('supply_pressure_pa', 1e12),
+                                         ('bulk_modulus_pa', 1e13),
+                                         ('fluid_density_kg_m3', 8.5e5)])
+def test_non_physical_fluid_values_are_refused_up_front(name, value):
+    """Values no hydraulic system has (a 1e12 Pa supply made the run diverge) are refused
+    with a one-line error naming the parameter and its admissible range."""
+    from eha_ros.physics.params import replace
+    with pytest.raises(ParameterError, match=f'{name} .* non-physical'):
+        replace(default_params(), **{name: value})

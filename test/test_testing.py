@@ -1,7 +1,10 @@
-"""The test helpers: domain ID reservation and isolated ROS environments."""
+"""The test helpers: domain ID reservation and isolated ROS environments; the source tree's
+explanation of its missing messages."""
 
 import os
 from pathlib import Path
+import subprocess
+import sys
 
 from eha_ros.isolation import allocate_domain_id, DOMAIN_IDS, ros_environment
 
@@ -47,3 +50,15 @@ def test_ros_env_fixture_sets_and_restores_os_environ(ros_env):
     assert os.environ['ROS_DOMAIN_ID'] == ros_env['ROS_DOMAIN_ID']
     assert os.environ['ROS_LOG_DIR'] == ros_env['ROS_LOG_DIR']
     assert 1 <= int(os.environ['ROS_DOMAIN_ID']) <= 101
+
+
+def test_importing_messages_from_the_source_tree_explains_why_it_fails():
+    """From the repository root the source folder shadows the installed package, which alone
+    has the generated messages: the error says so and what to do."""
+    root = Path(__file__).resolve().parents[1]
+    out = subprocess.run([sys.executable, '-c', 'import eha_ros.msg'], cwd=root,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1
+    last = out.stderr.strip().splitlines()[-1]
+    assert last.startswith('ModuleNotFoundError: eha_ros.msg is generated when the package')
+    assert str(root / 'eha_ros') in last and 'Run from another directory' in last

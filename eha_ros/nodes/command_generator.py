@@ -11,6 +11,8 @@ Parameters: ``scenario`` (a name from ``config/scenarios.yaml``; empty: the wave
 
 from __future__ import annotations
 
+import time
+
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
@@ -18,8 +20,8 @@ from eha_ros.msg import ActuatorCommand
 from eha_ros.physics import ParameterError, Scenario, load_scenarios
 from eha_ros.physics.commands import WAVEFORMS
 
-from .common import (MODES, TOPIC_CLOCK, TOPIC_COMMAND, advertise, declare, ns_to_stamp,
-                     run_node, stamp_to_ns, subscribe, validator)
+from .common import (MODES, TOPIC_CLOCK, TOPIC_COMMAND, TickTiming, advertise, declare,
+                     ns_to_stamp, run_node, stamp_to_ns, subscribe, validator)
 
 _WAVE_PARAMS = ('amplitude_m', 'frequency_rad_s', 'start_s', 'ramp_time_s', 'f0_hz', 'f1_hz',
                 'sweep_time_s')
@@ -49,6 +51,8 @@ class CommandGenerator(Node):
         self.pub = advertise(self, ActuatorCommand, TOPIC_COMMAND)
         self.mode = self.get_parameter('mode').value
         self.published = 0
+        self.timing = TickTiming(self, self.get_parameter('rate_hz').value,
+                                 self.mode == 'realtime')
         if self.mode == 'lockstep':
             subscribe(self, Clock, TOPIC_CLOCK, self._on_clock)
         else:
@@ -96,9 +100,18 @@ class CommandGenerator(Node):
         self.published += 1
 
     def _on_clock(self, msg: Clock):
+        began = time.monotonic_ns()
         self._publish(stamp_to_ns(msg.clock), stamp=msg.clock)
+        self.timing.tick(began)
+        self.timing.busy(began)
 
     def _on_timer(self):
+        began = time.monotonic_ns()
+        self.timing.on_schedule(began)
+        self._on_timer_publish()
+        self.timing.busy(began)
+
+    def _on_timer_publish(self):
         now = self.get_clock().now()
         msg = ActuatorCommand()
         msg.header.stamp = now.to_msg()

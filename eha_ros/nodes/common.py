@@ -1,10 +1,11 @@
-"""What the nodes share: topic names, QoS, timing modes, parameter declaration and the
-``main()`` boilerplate."""
+"""What the nodes share: topic names, QoS, timing modes, parameter declaration, each node's
+timing report on ``/diagnostics`` and the ``main()`` boilerplate."""
 
 from __future__ import annotations
 
 import math
 import sys
+import time
 from typing import Callable, Iterable
 
 import rclpy
@@ -17,12 +18,12 @@ from rclpy.node import Node
 from eha_ros.physics import ParameterError
 from eha_ros.physics.params import SPEC_BY_NAME
 
-from eha_ros.graph import (MODES, TOPIC_CLOCK, TOPIC_COMMAND, TOPIC_DIAGNOSTICS, TOPIC_HEALTH,
-                           TOPIC_SERVOVALVE, TOPIC_STATE, graph_qos)
+from eha_ros.graph import (MODES, TIMING_SUFFIX, TOPIC_CLOCK, TOPIC_COMMAND, TOPIC_DIAGNOSTICS,
+                           TOPIC_HEALTH, TOPIC_SERVOVALVE, TOPIC_STATE, graph_qos)
 
 __all__ = ['TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOPIC_HEALTH',
            'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'QOS', 'MODES', 'declare', 'declare_physics',
-           'run_node', 'stamp_to_ns', 'ns_to_stamp']
+           'run_node', 'stamp_to_ns', 'ns_to_stamp', 'TickTiming', 'TIMING_SUFFIX']
 
 #: Every graph topic (names and QoS from :mod:`eha_ros.graph`): reliable, last 1000
 #: kept, volatile: a reader outside the loop (recorder, health monitor) may lag 1 s at 1 kHz.
@@ -108,6 +109,160 @@ def validator(check: Callable[[dict], None]):
             return SetParametersResult(successful=False, reason=str(exc))
         return SetParametersResult(successful=True)
     return callback
+
+
+class TickTiming:
+    """A node's own timing, published as a ``DiagnosticStatus`` ``'<node>: timing'`` on
+    ``/diagnostics`` once per ``window_s`` of wall time, like diagnostic_updater's
+    ``FrequencyStatus`` (same keys for the rate) with what a 1 kHz loop also needs.
+
+    The node calls :meth:`tick` for every tick it runs (with the tick's lateness where it has
+    a wall-clock schedule), :meth:`slip` for ticks it dropped, and :meth:`busy` with the
+    duration of each callback. Values (window: since the last report; since startup):
+
+    * ``Events in window``, ``Events since startup``, ``Duration of window (s)``,
+      ``Actual frequency (Hz)``, ``Target frequency (Hz)``, ``Minimum/Maximum acceptable
+      frequency (Hz)``: as ``FrequencyStatus`` (tolerance 10 %);
+    * ``Period jitter p99 (ms)``, ``Period jitter max (ms)``: time between consecutive ticks
+      minus the period, absolute, in the window;
+    * ``Late ticks since startup`` (a tick run one period or more after it fell due),
+      ``Slipped ticks since startup`` (never run: the schedule skipped them), ``On time since
+      startup (%)`` (on-time ticks over run + slipped ticks);
+    * ``Overruns since startup``: callbacks that took longer than one period;
+    * ``Busy (core)``: the node's callback time per wall second in the window (its share of a
+      core, also when several nodes share one process); ``Process CPU (core)``: the whole
+      process's CPU time per wall second.
+
+    Level (realtime): ERROR when no tick in the window, WARN when the rate is outside the
+    tolerance or a tick slipped or ran late in the window, else OK. In lockstep the plant sets
+    the pace and there is no wall-clock target: OK, with the rate reported.
+    """
+
+    def __init__(self, node: Node, rate_hz: float, realtime: bool, *, window_s: float = 1.0,
+                 tolerance: float = 0.1):
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.clock import Clock as RosClock, ClockType
+
+        self.node = node
+        self.name = node.get_name() + TIMING_SUFFIX
+        self.target_hz = float(rate_hz)
+        self.period_ns = round(1e9 / rate_hz)
+        self.realtime = realtime
+        self.tolerance = tolerance
+        self.ticks = self.late = self.slipped = self.overruns = 0
+        self._due_ns = None  # own schedule (see on_schedule)
+        self._w_ticks = self._w_late = self._w_slipped = self._w_busy_ns = 0
+        self._intervals = []
+        self._last_ns = None
+        self._w_start = time.monotonic_ns()
+        self._cpu0 = time.process_time_ns()
+        self._array = DiagnosticArray
+        self.pub = advertise(node, DiagnosticArray, TOPIC_DIAGNOSTICS)
+        self.timer = node.create_timer(window_s, self.publish,
+                                       clock=RosClock(clock_type=ClockType.STEADY_TIME))
+
+    def tick(self, now_ns: int | None = None, late_ns: int | None = None) -> None:
+        """One tick run at ``now_ns`` (``time.monotonic_ns``), ``late_ns`` after it fell due
+        (None: no wall-clock schedule)."""
+        now_ns = time.monotonic_ns() if now_ns is None else now_ns
+        self.ticks += 1
+        self._w_ticks += 1
+        if self._last_ns is not None:
+            self._intervals.append(now_ns - self._last_ns)
+        self._last_ns = now_ns
+        if late_ns is not None and late_ns >= self.period_ns:
+            self.late += 1
+            self._w_late += 1
+
+    def on_schedule(self, now_ns: int | None = None) -> None:
+        """:meth:`tick` for a node ticking on a timer of period ``1/rate_hz``: its ticks fall due
+        on a grid anchored at the first; a call one period or more after its tick fell due
+        means the timer skipped the calls in between (rcl runs a late timer once): those ticks
+        slipped, and the call is the tick due last."""
+        now_ns = time.monotonic_ns() if now_ns is None else now_ns
+        if self._due_ns is None:
+            self._due_ns = now_ns
+        late = now_ns - self._due_ns
+        if late >= self.period_ns:
+            skipped = late // self.period_ns
+            self.slip(skipped)
+            self._due_ns += skipped * self.period_ns
+            late -= skipped * self.period_ns
+        self.tick(now_ns, max(0, late))
+        self._due_ns += self.period_ns
+
+    def slip(self, n: int) -> None:
+        """``n`` ticks dropped (never run)."""
+        self.slipped += int(n)
+        self._w_slipped += int(n)
+
+    def busy(self, start_ns: int, end_ns: int | None = None) -> None:
+        """A callback ran from ``start_ns`` to ``end_ns`` (``time.monotonic_ns``)."""
+        d = (time.monotonic_ns() if end_ns is None else end_ns) - start_ns
+        self._w_busy_ns += d
+        if d > self.period_ns:
+            self.overruns += 1
+
+    def values(self, now_ns: int | None = None) -> dict:
+        """The report's values (see the class docstring), and restart the window."""
+        now_ns = time.monotonic_ns() if now_ns is None else now_ns
+        cpu = time.process_time_ns()
+        window_s = max(1e-9, (now_ns - self._w_start) * 1e-9)
+        dev = [abs(i - self.period_ns) * 1e-6 for i in self._intervals]
+        dev.sort()
+        total = self.ticks + self.slipped
+        out = {
+            'Events in window': self._w_ticks,
+            'Events since startup': self.ticks,
+            'Duration of window (s)': round(window_s, 6),
+            'Actual frequency (Hz)': round(self._w_ticks / window_s, 3),
+            'Target frequency (Hz)': self.target_hz,
+            'Minimum acceptable frequency (Hz)': self.target_hz * (1 - self.tolerance),
+            'Maximum acceptable frequency (Hz)': self.target_hz * (1 + self.tolerance),
+            'Period jitter p99 (ms)': round(dev[min(len(dev) - 1, int(0.99 * len(dev)))], 4)
+            if dev else 0.0,
+            'Period jitter max (ms)': round(dev[-1], 4) if dev else 0.0,
+            'Late ticks since startup': self.late,
+            'Slipped ticks since startup': self.slipped,
+            'On time since startup (%)': round(100.0 * (self.ticks - self.late) / total, 3)
+            if total else 100.0,
+            'Overruns since startup': self.overruns,
+            'Busy (core)': round(self._w_busy_ns * 1e-9 / window_s, 4),
+            'Process CPU (core)': round((cpu - self._cpu0) * 1e-9 / window_s, 4),
+        }
+        self._level = self._grade(out, self._w_late, self._w_slipped)
+        self._w_ticks = self._w_late = self._w_slipped = self._w_busy_ns = 0
+        self._intervals = []
+        self._w_start, self._cpu0 = now_ns, cpu
+        return out
+
+    def _grade(self, v: dict, late: int, slipped: int):
+        from diagnostic_msgs.msg import DiagnosticStatus
+        if not self.realtime:
+            return DiagnosticStatus.OK, 'lockstep: paced by the plant (no wall-clock target)'
+        if v['Events in window'] == 0:
+            return DiagnosticStatus.ERROR, 'No events recorded.'
+        f = v['Actual frequency (Hz)']
+        if f < v['Minimum acceptable frequency (Hz)']:
+            return DiagnosticStatus.WARN, 'Frequency too low.'
+        if f > v['Maximum acceptable frequency (Hz)']:
+            return DiagnosticStatus.WARN, 'Frequency too high.'
+        if slipped or late:
+            return DiagnosticStatus.WARN, f'{late} late and {slipped} slipped ticks in window.'
+        return DiagnosticStatus.OK, 'Desired frequency met.'
+
+    def publish(self) -> None:
+        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+        values = self.values()
+        level, message = self._level
+        st = DiagnosticStatus(name=self.name, message=message,
+                              hardware_id=self.node.get_fully_qualified_name())
+        st.level = level
+        st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = self._array()
+        msg.header.stamp = self.node.get_clock().now().to_msg()
+        msg.status = [st]
+        self.pub.publish(msg)
 
 
 #: Executors a node can spin in (environment variable ``EHA_ROS_EXECUTOR``).

@@ -18,6 +18,8 @@ physics-only closed loop.  Parameters: ``kp_a_m``, ``ki_a_m_s``, ``kd_a_s_m``,
 
 from __future__ import annotations
 
+import time
+
 from rclpy.node import Node
 
 from eha_ros.msg import ActuatorCommand, ActuatorState, ServovalveCommand
@@ -25,8 +27,8 @@ from eha_ros.physics import ParameterError, load_params
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import PositionController
 
-from .common import (MODES, TOPIC_COMMAND, TOPIC_SERVOVALVE, TOPIC_STATE, advertise, declare,
-                     declare_physics, run_node, stamp_to_ns, subscribe, validator)
+from .common import (MODES, TOPIC_COMMAND, TOPIC_SERVOVALVE, TOPIC_STATE, TickTiming, advertise,
+                     declare, declare_physics, run_node, stamp_to_ns, subscribe, validator)
 
 GAINS = ('kp_a_m', 'ki_a_m_s', 'kd_a_s_m', 'current_limit_a')
 
@@ -67,8 +69,9 @@ class Controller(Node):
         self._state_ns = None  # lockstep: tick waiting for its command
         self._answered = (None, 0.0)  # lockstep: last tick answered and its current
         self.published = 0
+        self.timing = TickTiming(self, 1.0 / self.period_s, self.mode == 'realtime')
         if self.mode == 'realtime' and self.trigger == 'timer':
-            self.create_timer(self.period_s, self._on_timer)
+            self.create_timer(self.period_s, self._on_own_timer)
 
     def _params(self, changes):
         values = {n: self.get_parameter(n).value for n in GAINS}
@@ -96,6 +99,12 @@ class Controller(Node):
         current = self.pid.update(self.command_m, self.measured_m)
         self._send(self.get_clock().now().to_msg(), current)
 
+    def _on_own_timer(self):
+        began = time.monotonic_ns()
+        self.timing.on_schedule(began)
+        self._on_timer()
+        self.timing.busy(began)
+
     # both modes ----------------------------------------------------------------------------
     def _on_command(self, msg: ActuatorCommand):
         self.command_m = msg.position_setpoint_m
@@ -108,7 +117,10 @@ class Controller(Node):
         self.measured_m = msg.jack_position_measured_m
         if self.mode == 'realtime':
             if self.trigger == 'state':
+                began = time.monotonic_ns()
+                self.timing.tick(began)  # paced by the plant's states: no schedule of its own
                 self._on_timer()
+                self.timing.busy(began)
             return
         if self.mode == 'lockstep':
             t_ns = stamp_to_ns(msg.header.stamp)
@@ -126,10 +138,13 @@ class Controller(Node):
         setpoint, stamp = self._commands.pop(t_ns)
         for old in [k for k in self._commands if k < t_ns]:
             del self._commands[old]
+        began = time.monotonic_ns()
         current = self.pid.update(setpoint, self._state_measured)
         self._answered = (t_ns, current)
         self._state_ns = None
         self._send(stamp, current)
+        self.timing.tick(began)
+        self.timing.busy(began)
 
 
 def main(args=None) -> int:

@@ -28,6 +28,8 @@ is refused with the reason.
 
 from __future__ import annotations
 
+import time
+
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rclpy.node import Node
@@ -41,8 +43,9 @@ from eha_ros.physics.valve_test import ValveTest
 
 from eha_ros.graph import MODELS
 
-from .common import (MODES, TOPIC_CLOCK, TOPIC_SERVOVALVE, TOPIC_STATE, advertise, declare,
-                     declare_physics, ns_to_stamp, run_node, stamp_to_ns, subscribe, validator)
+from .common import (MODES, TOPIC_CLOCK, TOPIC_SERVOVALVE, TOPIC_STATE, TickTiming, advertise,
+                     declare, declare_physics, ns_to_stamp, run_node, stamp_to_ns, subscribe,
+                     validator)
 
 #: Flows [m^3/s] of the valve test by default: three of the diagnostic grid (DB4).
 DEFAULT_TEST_FLOWS_M3_S = (2.5714285714285714e-05, 4.285714285714286e-05, 6.0e-05)
@@ -120,6 +123,7 @@ class ServovalvePlant(Node):
         self.done = False
         self.diverged = False
         self.ticks = 0
+        self.timing = TickTiming(self, rate, self.mode == 'realtime')
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         if self.mode == 'lockstep':
             self.clock_pub = advertise(self, Clock, TOPIC_CLOCK)
@@ -236,12 +240,20 @@ class ServovalvePlant(Node):
 
     def _on_timer(self):
         now = self._now_ns()
+        began = time.monotonic_ns()
+        try:
+            self._catch_up(now)
+        finally:
+            self.timing.busy(began)
+
+    def _catch_up(self, now: int):
         if self._t0_ns is None:
             self._t0_ns = now - self.period_ns  # the first tick falls due now
         behind = (now - self._t0_ns) // self.period_ns - self._rt_ticks
         if behind > self.max_catch_up:
             slip = behind - self.max_catch_up
             self.slipped_ticks += slip
+            self.timing.slip(slip)
             self._t0_ns += slip * self.period_ns
             behind = self.max_catch_up
             self.get_logger().warning(
@@ -252,6 +264,8 @@ class ServovalvePlant(Node):
             if not self._advance():
                 return
             self.state_pub.publish(self._state_msg())
+            # tick k fell due at t0 + k periods
+            self.timing.tick(now, now - (self._t0_ns + self._rt_ticks * self.period_ns))
 
     def _on_command(self, msg: ServovalveCommand):
         if self.mode == 'realtime':
@@ -260,8 +274,11 @@ class ServovalvePlant(Node):
         if stamp_to_ns(msg.header.stamp) != self.plant.time_ns:
             return  # an answer to a tick already advanced (a re-sent tick)
         self.current_a = msg.current_command_a
+        began = time.monotonic_ns()
         if self._advance():
             self._publish_tick()
+            self.timing.tick(began)
+        self.timing.busy(began)
 
     # lockstep ----------------------------------------------------------------------------
     def _ready(self) -> bool:

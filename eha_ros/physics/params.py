@@ -87,14 +87,19 @@ def _frac(name, meaning, hi_open=False):
 
 SPECS: tuple[ParamSpec, ...] = (
     # --- hydraulic supply and fluid -------------------------------------------------------
-    _pos('supply_pressure_pa', 'Pa', 'absolute supply pressure PS'),
-    _pos('return_pressure_pa', 'Pa', 'absolute return pressure PR (must be below PS)'),
+    # Upper limits: what hydraulic servo systems reach, with margin (100 MPa: twice the
+    # highest industrial supply; oils are 700-1100 kg/m^3, under 1e-2 m^2/s even cold, and
+    # stiffer than 1e10 Pa only if the oil were steel), so a typo is refused up front.
+    _pos('supply_pressure_pa', 'Pa', 'absolute supply pressure PS', hi=1e8),
+    _pos('return_pressure_pa', 'Pa', 'absolute return pressure PR (must be below PS)', hi=1e8),
     _pos('nominal_supply_return_pa', 'Pa', 'PSR0, supply-return difference the first-stage '
-         'gains were rated at'),
-    _pos('vapour_pressure_pa', 'Pa', 'PVap, absolute pressure at which the oil cavitates'),
-    _pos('fluid_density_kg_m3', 'kg/m^3', 'oil density rho'),
-    _pos('fluid_kinematic_viscosity_m2_s', 'm^2/s', 'oil kinematic viscosity nu'),
-    _pos('bulk_modulus_pa', 'Pa', 'Bet, effective bulk modulus of oil, hoses and entrained air'),
+         'gains were rated at', hi=1e8),
+    _pos('vapour_pressure_pa', 'Pa', 'PVap, absolute pressure at which the oil cavitates',
+         hi=1e6),
+    _pos('fluid_density_kg_m3', 'kg/m^3', 'oil density rho', hi=2e3),
+    _pos('fluid_kinematic_viscosity_m2_s', 'm^2/s', 'oil kinematic viscosity nu', hi=1e-2),
+    _pos('bulk_modulus_pa', 'Pa', 'Bet, effective bulk modulus of oil, hoses and entrained air',
+         hi=1e10),
     # --- controller -----------------------------------------------------------------------
     _nonneg('kp_a_m', 'A/m', 'proportional gain of the position controller'),
     _nonneg('ki_a_m_s', 'A/(m*s)', 'integral gain of the position controller'),

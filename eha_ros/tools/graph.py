@@ -40,6 +40,7 @@ import numpy as np
 import yaml
 
 from eha_ros import graph
+from eha_ros.graph import TIMING_SUFFIX
 
 __all__ = ['main', 'read_params_file', 'node_defaults', 'defaults_yaml']
 
@@ -294,8 +295,8 @@ def summarize(result, processes: bool, recording_info=None) -> dict:
         out['recording'] = {'file': cfg.record, 'complete': recording_info.complete,
                             'messages': recording_info.message_counts,
                             'lost': recording_info.lost_messages()}
-    timing = {name.split(':')[0]: d['values'] for name, d in result.diagnostics.items()
-              if name.endswith(': timing')}
+    timing = {name[:-len(TIMING_SUFFIX)]: d['values'] for name, d in result.diagnostics.items()
+              if name.endswith(TIMING_SUFFIX)}
     if timing:
         out['timing'] = timing
     return out
@@ -330,8 +331,13 @@ def _print_text(summary: dict, out=sys.stdout) -> None:
         print(f'  recorded {sum(r["messages"].values())} messages to {r["file"]}, '
               f'{sum(r["lost"].values())} lost'
               + ('' if r['complete'] else ' (file INCOMPLETE: run eha-recover)'), file=out)
-    for node, values in s.get('timing', {}).items():
-        print(f'  {node} timing: ' + ', '.join(f'{k} {v}' for k, v in values.items()), file=out)
+    for node, v in s.get('timing', {}).items():
+        print(f'  {node}: {v.get("Actual frequency (Hz)")} Hz, '
+              f'{v.get("On time since startup (%)")} % on time, '
+              f'{v.get("Late ticks since startup")} late, '
+              f'{v.get("Slipped ticks since startup")} slipped, '
+              f'{v.get("Overruns since startup")} overruns, jitter p99 '
+              f'{v.get("Period jitter p99 (ms)")} ms, {v.get("Busy (core)")} core', file=out)
 
 
 def main(argv=None) -> int:
