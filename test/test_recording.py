@@ -853,3 +853,132 @@ def test_sigkilled_recorder_is_recovered_with_its_losses(ros_env, tmp_path):
     assert lost > 0 and lost == int(np.sum(np.diff(ticks) - 1))
     assert info.run_info()['recovered']['loss_counted_from'][graph.TOPIC_STATE].startswith(
         'sequence numbers')
+
+
+# --- recorder controls: topic patterns, split, snapshot -----------------------------------------
+
+def _wait_for_line(process, words, timeout=PROCESS_TIMEOUT_S):
+    """Read the process's stderr until a line holds ``words``; returns that line."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = process.stderr.readline()
+        if not line and process.poll() is not None:
+            break
+        if words in line:
+            return line
+    raise AssertionError(f'no line with {words!r}: ' + process.stderr.read())
+
+
+def test_recorder_topic_patterns(ros_env, tmp_path):
+    output = tmp_path / 'some.mcap'
+    recorder = _start_recorder(output, ros_env, tmp_path, '--regex', '^/eha/',
+                               '--exclude-regex', 'command')
+    _wait_for_line(recorder, 'topics to')
+    _, err = _stop(recorder)
+    assert recorder.returncode == 0, err
+    assert set(scan(output, strict=True).channels) == {graph.TOPIC_STATE, graph.TOPIC_HEALTH}
+    bad = subprocess.run([str(BIN / 'recorder'), '-o', str(tmp_path / 'x.mcap'),
+                          '--regex', '^/nothing'], env=ros_env, cwd=tmp_path, text=True,
+                         capture_output=True, timeout=PROCESS_TIMEOUT_S)
+    assert bad.returncode == 2 and 'no topic left' in bad.stderr
+    _one_line_error(bad.stderr, 'recorder')
+
+
+@pytest.mark.parametrize('split', [('--max-bag-size', '6000'), ('--max-bag-duration', '0.25')])
+def test_recorder_splits_into_numbered_complete_files(ros_env, tmp_path, split):
+    """Split by size or duration: files run_0.mcap, run_1.mcap, ... each complete, together
+    every published message once, in order."""
+    from rclpy.duration import Duration
+
+    from eha_ros.msg import ActuatorState
+
+    output = tmp_path / 'run.mcap'
+    recorder = _start_recorder(output, ros_env, tmp_path, '--topics', graph.TOPIC_STATE,
+                               *split, '--ros-args', '-p', 'chunk_size:=2000')
+    n = 1200
+    try:
+        with ros_node('recording_test_split') as (node, _):
+            pub = node.create_publisher(ActuatorState, graph.TOPIC_STATE, graph.graph_qos())
+            _wait_matched([pub])
+            for k in range(n):  # at least 1.2 s: the duration split makes >= 4 files
+                pub.publish(ActuatorState(tick=k))
+                time.sleep(0.001)
+            assert pub.wait_for_all_acked(Duration(seconds=DISCOVERY_TIMEOUT_S))
+    finally:
+        _, err = _stop(recorder)
+    assert recorder.returncode == 0, err
+    assert not output.exists()
+    files = sorted(tmp_path.glob('run_*.mcap'), key=lambda p: int(p.stem.split('_')[1]))
+    assert [p.name for p in files] == [f'run_{i}.mcap' for i in range(len(files))]
+    assert len(files) >= 3
+    ticks = []
+    for path in files:
+        info = scan(path, strict=True)
+        assert info.complete and info.lost_messages() == {graph.TOPIC_STATE: 0}
+        ticks += list(mcap_io.load_topic_arrays(path, graph.TOPIC_STATE)['tick'])
+    assert ticks == list(range(n))
+
+
+def test_snapshot_mode_writes_the_last_seconds_on_request_and_on_health_error(ros_env,
+                                                                            tmp_path):
+    """Snapshot mode, states flowing at 1 kHz: the ~/snapshot service and then a health ERROR
+    each write the last 0.5 s (contiguous ticks, no more than 0.5 s) to box_0 and box_1."""
+    from rclpy.duration import Duration
+    from std_srvs.srv import Trigger
+
+    from eha_ros.msg import ActuatorState, HealthStatus
+
+    output = tmp_path / 'box.mcap'
+    recorder = _start_recorder(output, ros_env, tmp_path, '--snapshot', '0.5')
+    stop = threading.Event()
+    try:
+        with ros_node('recording_test_snapshot') as (node, executor):
+            pub = node.create_publisher(ActuatorState, graph.TOPIC_STATE, graph.graph_qos())
+            health = node.create_publisher(HealthStatus, graph.TOPIC_HEALTH, graph.graph_qos())
+            client = node.create_client(Trigger, '/recorder/snapshot')
+            _wait_matched([pub, health])
+            assert client.wait_for_service(timeout_sec=DISCOVERY_TIMEOUT_S)
+
+            def stream():
+                tick = 0
+                while not stop.is_set():
+                    tick += 1
+                    pub.publish(ActuatorState(tick=tick))
+                    time.sleep(0.001)
+            thread = threading.Thread(target=stream)
+            thread.start()
+            time.sleep(1.0)  # more than the 0.5 s kept (what is kept is checked below)
+            future = client.call_async(Trigger.Request())
+            executor.spin_until_future_complete(future, timeout_sec=PROCESS_TIMEOUT_S)
+            answer = future.result()
+            assert answer.success and answer.message.endswith('box_0.mcap')
+            time.sleep(0.2)
+            health.publish(HealthStatus(level=HealthStatus.LEVEL_WARN))
+            health.publish(HealthStatus(level=HealthStatus.LEVEL_ERROR, message='worn'))
+            assert health.wait_for_all_acked(Duration(seconds=DISCOVERY_TIMEOUT_S))
+            deadline = time.monotonic() + PROCESS_TIMEOUT_S
+            while not (tmp_path / 'box_1.mcap').exists():
+                assert time.monotonic() < deadline
+                time.sleep(0.05)
+            stop.set()
+            thread.join()
+    finally:
+        stop.set()
+        _, err = _stop(recorder)
+    assert recorder.returncode == 0, err
+    assert sorted(p.name for p in tmp_path.glob('box*.mcap')) == ['box_0.mcap', 'box_1.mcap']
+    last = []
+    for path in (tmp_path / 'box_0.mcap', tmp_path / 'box_1.mcap'):
+        info = scan(path, strict=True)
+        assert info.complete and set(info.channels) == set(graph.TOPICS)
+        state = mcap_io.load_topic_arrays(path, graph.TOPIC_STATE)
+        assert state['tick'].size > 0
+        span_ns = int(state['log_time_ns'][-1] - state['log_time_ns'][0])
+        assert span_ns <= 0.5e9                               # only the last 0.5 s
+        assert np.all(np.diff(state['tick']) == 1)
+        assert info.lost_messages()[graph.TOPIC_STATE] == 0
+        last.append(int(state['tick'][-1]))
+    assert last[0] < last[1]
+    assert scan(tmp_path / 'box_0.mcap').run_info()['snapshot_reason'] == \
+        'requested on ~/snapshot'
+    assert scan(tmp_path / 'box_1.mcap').run_info()['snapshot_reason'] == 'health ERROR: worn'

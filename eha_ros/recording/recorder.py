@@ -5,6 +5,18 @@ Examples::
     recorder -o run1.mcap                             # every graph topic until Ctrl-C
     recorder -o run1.mcap --topics /eha/state /eha/command --duration 10
     recorder --ros-args -p output:=run1.mcap -p topics:='[/eha/state]'
+    recorder -o run.mcap -x '^/clock$|/diagnostics'     # all but /clock and /diagnostics
+    recorder -o run.mcap --max-bag-duration 60        # run_0.mcap, run_1.mcap, ... each 60 s
+    recorder -o box.mcap --snapshot 10                # black box: box_0.mcap on a fault
+
+Controls, as rosbag2's: ``--regex`` / ``--exclude-regex`` choose topics by pattern (on top
+of ``topics``); ``--max-bag-size`` / ``--max-bag-duration`` split the recording into complete
+files ``<stem>_0.mcap``, ``<stem>_1.mcap``, ... (the numbering rosbag2 gives a bag's files;
+the size is checked against the bytes written out, so a file may exceed it by up to a chunk),
+each with its own metadata and the losses of its own span; ``--snapshot S`` keeps only the
+last S seconds in memory and writes them to the next numbered file when the ``~/snapshot``
+service (``std_srvs/srv/Trigger``) is called, and by itself when ``/eha/health`` turns to
+``LEVEL_ERROR``, so the moments before a fault are kept.
 
 Every topic is subscribed to as serialized CDR (no deserialization) and written as-is, in
 rosbag2's MCAP layout (see :mod:`eha_ros.recording.mcap_io`); each topic's channel is created
@@ -30,6 +42,11 @@ Parameters (``--ros-args -p name:=value``; the command-line options override the
 ``duration_s``       stop after this long, s (0: until SIGINT/SIGTERM)            0.0
 ``batch_period_s``   pause after taking messages so the next take finds a batch,  0.005
                      s (the history holds ``queue_depth`` per topic)
+``regex``            record only topics matching this regular expression          ``''``
+``exclude_regex``    leave out topics matching this regular expression            ``''``
+``max_bag_size_b``   split by size, bytes (0: no split)                           0
+``max_bag_duration_s`` split by duration, s (0: no split)                         0.0
+``snapshot_s``       snapshot mode: seconds kept in memory (0: record all)        0.0
 ===================  ==========================================================  ===========
 
 Exit status: 0 after a clean stop, 2 on a usage error (unknown topic, existing output, bad
@@ -39,9 +56,11 @@ parameter), with one line on stderr.
 from __future__ import annotations
 
 import argparse
+from collections import deque
 import datetime
 import os
 from pathlib import Path
+import re
 import socket
 import sys
 import time
@@ -81,6 +100,14 @@ RECORDER_PARAMETERS = {
     'flush_interval_s': (1.0, 'longest time a received message stays in memory [s]'),
     'duration_s': (0.0, 'stop after this long [s] (0: until SIGINT/SIGTERM)'),
     'batch_period_s': (0.005, 'pause after taking messages so the next take finds a batch [s]'),
+    'regex': ('', 'record only the topics matching this regular expression (empty: all)'),
+    'exclude_regex': ('', 'leave out the topics matching this regular expression'),
+    'max_bag_size_b': (0, 'split: start the next file once one holds this many bytes [B] '
+                          '(0: no split by size)'),
+    'max_bag_duration_s': (0.0, 'split: start the next file once one spans this long [s] '
+                                '(0: no split by duration)'),
+    'snapshot_s': (0.0, 'snapshot mode: keep the last snapshot_s [s] in memory and write them '
+                        'on ~/snapshot or when /eha/health turns ERROR (0: record all)'),
 }
 
 
@@ -114,11 +141,39 @@ def resolve_topics(requested: Sequence[str], namespace: str = graph.NAMESPACE) -
     return out
 
 
-def check_output(path: str) -> Path:
-    """The output path, refused where it exists or its folder does not."""
+def select_topics(topics: Dict[str, str], regex: str = '',
+                  exclude_regex: str = '') -> Dict[str, str]:
+    """The topics matching ``regex`` (``re.search``; empty: all) and not ``exclude_regex``.
+
+    Raises
+    ------
+    RecorderError
+        If a pattern is not a regular expression, or no topic is left.
+    """
+    try:
+        keep = re.compile(regex) if regex else None
+        drop = re.compile(exclude_regex) if exclude_regex else None
+    except re.error as exc:
+        raise RecorderError(f'bad topic pattern: {exc}') from None
+    out = {t: ty for t, ty in topics.items()
+           if (keep is None or keep.search(t)) and not (drop is not None and drop.search(t))}
+    if not out:
+        raise RecorderError(f'no topic left to record (regex {regex!r}, exclude_regex '
+                            f'{exclude_regex!r}, topics {", ".join(topics)})')
+    return out
+
+
+def check_output(path: str, numbered: bool = False) -> Path:
+    """The output path, refused where it (or, ``numbered``, a ``<stem>_<n>`` file of it)
+    exists or its folder does not."""
     out = Path(path)
     if out.exists():
         raise RecorderError(f'output {str(out)!r} exists; refusing to overwrite it')
+    if numbered and out.parent.is_dir():
+        taken = sorted(p.name for p in out.parent.glob(f'{out.stem}_*{out.suffix or ".mcap"}')
+                       if p.stem[len(out.stem) + 1:].isdigit())
+        if taken:
+            raise RecorderError(f'{taken[0]} exists; refusing to overwrite it')
     parent = out.parent if str(out.parent) else Path('.')
     if not parent.is_dir():
         raise RecorderError(f'output folder {str(parent)!r} does not exist')
@@ -171,30 +226,83 @@ class Recorder(Node):
         if compression not in ('auto', 'zstd', 'lz4', 'none'):
             raise RecorderError(f'compression must be auto, zstd, lz4 or none, got '
                                 f'{compression!r}')
-        wanted = resolve_topics(list(requested or []), namespace)
+        wanted = select_topics(resolve_topics(list(requested or []), namespace),
+                               value['regex'], value['exclude_regex'])
+        self.max_bag_size_b = int(value['max_bag_size_b'])
+        self.max_bag_duration_ns = round(float(value['max_bag_duration_s']) * 1e9)
+        self.snapshot_ns = round(float(value['snapshot_s']) * 1e9)
+        if self.max_bag_size_b < 0 or self.max_bag_duration_ns < 0 or self.snapshot_ns < 0:
+            raise RecorderError('max_bag_size_b, max_bag_duration_s and snapshot_s must be >= 0')
+        if self.snapshot_ns and (self.max_bag_size_b or self.max_bag_duration_ns):
+            raise RecorderError('snapshot mode writes one file per snapshot: no split with it')
         states = []
         for topic, type_name in wanted.items():
             try:
                 states.append(_TopicState(topic, type_name, graph.message_class(type_name)))
             except ValueError as exc:
                 raise RecorderError(str(exc)) from None
-        path = check_output(self.output)
-
-        self.started_ns = time.time_ns()
-        self.writer = McapWriter(path, chunk_size=chunk_size, compression=compression,
+        self.numbered = bool(self.max_bag_size_b or self.max_bag_duration_ns or self.snapshot_ns)
+        path = check_output(self.output, numbered=self.numbered)
+        self._writer_args = dict(chunk_size=chunk_size, compression=compression,
                                  flush_interval_s=flush_interval_s)
-        self.writer.progress = self._progress
+        self.files: List[str] = []
+        self.started_ns = time.time_ns()
         self.last_message_monotonic = time.monotonic()
         self.received = 0
         self._states: Dict[str, _TopicState] = {}
+        self._ring: deque = deque()  # snapshot mode: (state, data, log, publish, seq, publisher)
+        self._health_level = graph.LEVEL_OK
+        self.writer = None if self.snapshot_ns else self._open_writer()
         qos = graph.graph_qos(depth=queue_depth)
         for state in states:
             self._states[state.topic] = state
             state.subscription = self.create_subscription(
                 state.cls, state.topic, self._callback(state), qos, raw=True)
+        if self.snapshot_ns:
+            from std_srvs.srv import Trigger
+
+            from eha_ros.msg import HealthStatus
+            self.create_service(Trigger, '~/snapshot', self._on_snapshot_request)
+            health = next(t for t, ty in graph.topics_in(namespace).items()
+                          if ty == graph.TOPICS[graph.TOPIC_HEALTH])
+            self.create_subscription(HealthStatus, health, self._on_health, qos)
+        what = (f'the last {self.snapshot_ns / 1e9:g} s of' if self.snapshot_ns else 'recording')
         self.get_logger().info(
-            f'recording {len(states)} topics to {path}: '
+            f'{what} {len(states)} topics to {path}: '
             f'{", ".join(s.topic for s in states)}')
+
+    # files ---------------------------------------------------------------------------------
+    def _next_path(self) -> Path:
+        """The output, or (split, snapshot) its ``<stem>_<index>.mcap`` files, as rosbag2
+        numbers a bag's files."""
+        out = Path(self.output)
+        if not self.numbered:
+            return out
+        return out.with_name(f'{out.stem}_{len(self.files)}{out.suffix or ".mcap"}')
+
+    def _open_writer(self) -> McapWriter:
+        path = self._next_path()
+        writer = McapWriter(path, **self._writer_args)
+        writer.progress = self._progress
+        self.files.append(str(path))
+        self._file_started_ns = None
+        self._lost_at_open = {t: s.counter.lost for t, s in self._states.items()}
+        for state in self._states.values():
+            state.registered = False
+        return writer
+
+    def _rotate(self) -> None:
+        """Close the file being written and start the next one (split)."""
+        self._close_writer()
+        self.writer = self._open_writer()
+
+    def _split_due(self, log_ns: int) -> bool:
+        if self._file_started_ns is None:
+            self._file_started_ns = log_ns
+            return False
+        if self.max_bag_duration_ns and log_ns - self._file_started_ns >= self.max_bag_duration_ns:
+            return True
+        return bool(self.max_bag_size_b and self.writer.bytes_written() >= self.max_bag_size_b)
 
     def _callback(self, state: _TopicState):
         def on_message(data: bytes, info) -> None:
@@ -209,20 +317,19 @@ class Recorder(Node):
                 self._record(state, taken[0], taken[1])
         return on_message
 
-    def _register(self, state: _TopicState) -> None:
+    def _register(self, state: _TopicState, writer: Optional[McapWriter] = None) -> None:
         profiles = []
         try:
             profiles = [qos_profile_dict(p.qos_profile)
                         for p in self.get_publishers_info_by_topic(state.topic)]
         except Exception:  # graph query failed: fall back to the nominal QoS
             profiles = []
-        self.writer.add_topic(state.topic, state.type_name,
-                              offered_qos_profiles=profiles or None)
-        state.registered = True
+        (writer or self.writer).add_topic(state.topic, state.type_name,
+                                          offered_qos_profiles=profiles or None)
+        if writer is None:
+            state.registered = True
 
     def _record(self, state: _TopicState, data: bytes, info) -> None:
-        if not state.registered:
-            self._register(state)
         sequence = info.get('publication_sequence_number')
         gid = info.get('publisher_gid')
         publisher = bytes(gid['data']) if gid else None
@@ -230,14 +337,63 @@ class Recorder(Node):
             state.sequence_numbers = False
         state.counter.add(sequence, publisher)
         log_ns = info.get('received_timestamp') or time.time_ns()
-        self.writer.write(state.topic, data, log_time_ns=log_ns,
-                          publish_time_ns=info.get('source_timestamp') or log_ns,
-                          sequence=sequence or 0)
+        publish_ns = info.get('source_timestamp') or log_ns
         self.received += 1
         self.last_message_monotonic = time.monotonic()
+        if self.snapshot_ns:
+            ring = self._ring
+            ring.append((state, bytes(data), log_ns, publish_ns, sequence, publisher))
+            while ring and ring[0][2] < log_ns - self.snapshot_ns:
+                ring.popleft()
+            return
+        if self.numbered and self._split_due(log_ns):
+            self._rotate()
+            self._file_started_ns = log_ns
+        if not state.registered:
+            self._register(state)
+        self.writer.write(state.topic, data, log_time_ns=log_ns, publish_time_ns=publish_ns,
+                          sequence=sequence or 0)
+
+    # snapshot mode -------------------------------------------------------------------------
+    def _on_health(self, msg) -> None:
+        level = int(msg.level)
+        if level == graph.LEVEL_ERROR and self._health_level != graph.LEVEL_ERROR:
+            self.snapshot(f'health ERROR: {msg.message}')
+        self._health_level = level
+
+    def _on_snapshot_request(self, request, response):
+        path = self.snapshot('requested on ~/snapshot')
+        response.success = path is not None
+        response.message = path or 'nothing to write: no message in the last snapshot_s'
+        return response
+
+    def snapshot(self, reason: str) -> Optional[str]:
+        """Write the messages of the last ``snapshot_s`` to the next numbered file; returns
+        its path (None when the buffer is empty)."""
+        entries = list(self._ring)
+        if not entries:
+            return None
+        path = self._next_path()
+        writer = McapWriter(path, **self._writer_args)
+        self.files.append(str(path))
+        counters: Dict[str, SequenceGapCounter] = {}
+        for state in self._states.values():
+            self._register(state, writer)
+        for state, data, log_ns, publish_ns, sequence, publisher in entries:
+            counters.setdefault(state.topic, SequenceGapCounter()).add(sequence, publisher)
+            writer.write(state.topic, data, log_time_ns=log_ns, publish_time_ns=publish_ns,
+                         sequence=sequence or 0)
+        writer.lost_counts = {t: c.lost for t, c in counters.items()}
+        writer.run_info.update(self._run_info(), snapshot_reason=reason,
+                               snapshot_s=self.snapshot_ns / 1e9, stopped_ns=time.time_ns())
+        writer.close()
+        self.get_logger().info(f'snapshot ({reason}): wrote {path}: {len(entries)} messages')
+        return str(path)
 
     def lost_counts(self) -> Dict[str, int]:
-        return {t: s.counter.lost for t, s in self._states.items()}
+        """Messages lost per topic in the file being written."""
+        start = getattr(self, '_lost_at_open', {})
+        return {t: s.counter.lost - start.get(t, 0) for t, s in self._states.items()}
 
     def _run_info(self) -> dict:
         return {
@@ -259,21 +415,27 @@ class Recorder(Node):
         return {'lost': self.lost_counts(), 'recorded': dict(self.writer.message_counts),
                 'run': dict(self._run_info(), progress_ns=time.time_ns())}
 
-    def close(self) -> None:
+    def _close_writer(self) -> None:
         """Register silent topics, store lost counts and run info, close the file."""
-        if self.writer.closed:
-            return
         for state in self._states.values():
             if not state.registered:
                 self._register(state)
-        stopped_ns = time.time_ns()
         self.writer.lost_counts = self.lost_counts()
-        self.writer.run_info.update(self._run_info(), stopped_ns=stopped_ns)
+        self.writer.run_info.update(self._run_info(), stopped_ns=time.time_ns(),
+                                    file_index=len(self.files) - 1)
         self.writer.close()
+
+    def close(self) -> None:
+        """Close the file being written (snapshot mode: nothing is written at the end)."""
+        if self.writer is None or self.writer.closed:
+            return
+        stopped_ns = time.time_ns()
+        self._close_writer()
         log = self.get_logger()
         counts = self.writer.message_counts
         lost = self.writer.lost_counts
-        log.info(f'wrote {self.output}: {sum(counts.values())} messages, '
+        where = self.files[-1] if len(self.files) == 1 else f'{len(self.files)} files'
+        log.info(f'wrote {where}: {sum(counts.values())} messages, '
                  f'{sum(lost.values())} lost, '
                  f'{(stopped_ns - self.started_ns) / 1e9:.1f} s')
         for topic in self._states:
@@ -291,6 +453,18 @@ def _parser() -> argparse.ArgumentParser:
                         help='topics to record (default: every graph topic)')
     parser.add_argument('--duration', type=float, metavar='S',
                         help='stop after S seconds (default: until SIGINT/SIGTERM)')
+    parser.add_argument('-e', '--regex', metavar='RE',
+                        help='record only the topics matching RE')
+    parser.add_argument('-x', '--exclude-regex', metavar='RE',
+                        help='leave out the topics matching RE')
+    parser.add_argument('-b', '--max-bag-size', type=int, metavar='BYTES',
+                        help='split: next file <stem>_<n>.mcap once one holds BYTES')
+    parser.add_argument('-d', '--max-bag-duration', type=float, metavar='S',
+                        help='split: next file <stem>_<n>.mcap once one spans S seconds')
+    parser.add_argument('--snapshot', type=float, metavar='S',
+                        help='snapshot mode: keep the last S seconds, write them on the '
+                             '~/snapshot service (std_srvs/Trigger) or when /eha/health '
+                             'turns ERROR')
     return parser
 
 
@@ -305,6 +479,13 @@ def main(argv: Optional[List[str]] = None) -> int:
         overrides.append(Parameter('topics', value=list(args.topics)))
     if args.duration is not None:
         overrides.append(Parameter('duration_s', value=float(args.duration)))
+    for option, name, convert in (('regex', 'regex', str),
+                                  ('exclude_regex', 'exclude_regex', str),
+                                  ('max_bag_size', 'max_bag_size_b', int),
+                                  ('max_bag_duration', 'max_bag_duration_s', float),
+                                  ('snapshot', 'snapshot_s', float)):
+        if getattr(args, option) is not None:
+            overrides.append(Parameter(name, value=convert(getattr(args, option))))
 
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     stop = StopRequest()

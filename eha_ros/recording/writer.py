@@ -194,6 +194,10 @@ class McapWriter:
                 and time.monotonic() - self._chunk_opened >= self._flush_interval_s):
             self.flush()
 
+    def bytes_written(self) -> int:
+        """Bytes of the file so far (chunks written out; the one being filled not counted)."""
+        return self._stream.tell()
+
     def write_message(self, topic: str, msg, log_time_ns: int,
                       publish_time_ns: Optional[int] = None, sequence: int = 0) -> None:
         """Serialize an rclpy message (needs ``rclpy``) and :meth:`write` it; registers the
