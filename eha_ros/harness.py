@@ -89,6 +89,8 @@ class GraphConfig:
         test = ({'valve_test': True,
                  'valve_test_flows_m3_s': [float(q) for q in sc.valve_test_flows_m3_s]}
                 if sc.valve_test else {})
+        if sc.preflight_check:
+            test['preflight_check'] = True
         # state readers: controller, collector, health monitor, recorders; /clock readers: the
         # command generator (its own subscription and its sim-time one), the controller's and
         # the health monitor's sim time, recorders
@@ -351,10 +353,20 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
             elif time.monotonic() - last_progress > timeout_s:
                 raise GraphError(f'no plant state for {timeout_s:g} s (after {last_count} '
                                  f'states): the graph stalled (logs in {log_dir})')
-        # let the last tick's messages (health, commands) arrive
+        # let the last tick's messages (health, commands) arrive; the health monitor
+        # estimates on a worker thread: wait until it is idle and its messages are in
         end = time.monotonic() + 0.2
-        while time.monotonic() < end:
+        cap = time.monotonic() + 10.0
+        n_health = -1
+        while time.monotonic() < cap:
             executor.spin_once(timeout_sec=0.02)
+            if time.monotonic() < end:
+                continue
+            busy = any(getattr(n, '_pending', 0) for n in nodes)
+            if not config.health or (not busy and len(collector.health) == n_health):
+                break
+            n_health = len(collector.health)
+            end = time.monotonic() + 0.3
         result = collector.result(config, time.monotonic() - t0)
         result.interrupted = interrupted
     finally:

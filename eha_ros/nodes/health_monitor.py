@@ -1,198 +1,256 @@
-"""``health_monitor``: estimates the servovalve's wear (radial clearance, overlap) from the
-plant's ``ActuatorState`` and publishes ``HealthStatus`` and ``/diagnostics``.
+"""``health_monitor``: the servovalve's health from the plant's ``ActuatorState``, published
+as ``HealthStatus`` on ``/eha/health`` and as ``/diagnostics``.
 
-Every ``update_period_s`` of state time it fits the valve model to the (XS, Q, P12) samples of
-the last ``window_s`` (:class:`eha_ros.surrogates.health.InServiceEstimator`, method
-``steady-fit``, or ``surrogate-fit`` with ``model`` naming a shipped 4-input surrogate) and
-grades the estimate with the thresholds of ``config/health.yaml``.
+The logic is :class:`eha_ros.surrogates.monitor.MonitorCore`, shared with ``eha-diagnose``:
 
-During a diagnostic valve test (states with ``STATUS_VALVE_TEST``, see
-:mod:`eha_ros.physics.valve_test`) it collects P12 at the end of every point's hold instead;
-each time a curve (133 spool positions at one flow) is complete it publishes the wear the
-diagnostic network reads from the curves of the test so far (method ``diagnostic-network``,
-:class:`eha_ros.surrogates.health.ValveTestEstimator`).  The in-service window ignores test
-samples.
+* in service, every ``update_period_s`` of state time, the wear (radial clearance, overlap)
+  from the (XS, Q, P12) samples of the last ``window_s`` - a posterior over the steady-state
+  valve table whose deviation says what the motion supports;
+* during a diagnostic valve test (``STATUS_VALVE_TEST``), the wear from each completed curve
+  by the diagnostic network;
+* at the end of a pre-flight check (``STATUS_PREFLIGHT``), demagnetisation, filter clogging,
+  spool and jack friction and current offset by the pre-flight network.
+
+Estimates run on a worker thread: the subscription callback only buffers states and hands
+each estimate that falls due (with a copy of its inputs) to the worker, so a fit never delays
+the 1 kHz states.  An estimate still waiting when the next one falls due is dropped and
+counted (``estimates_dropped``).  What is published depends only on the states, not on the
+timing: in lockstep a recording's ``/eha/health`` equals ``eha-diagnose``'s replay of its
+``/eha/state`` bit for bit.
+
+``/diagnostics``: one ``DiagnosticStatus`` per monitored parameter (names
+``health_monitor: <parameter>``, ``hardware_id`` from the parameter of that name), its level
+graded with ``config/health.yaml`` and the reason as message, key-values ``value``, ``std``,
+``unit``, ``method``, ``stamp``; plus ``health_monitor: estimate``, the latest estimate as a
+whole.  Parameters not estimated yet are STALE ("not estimated yet").  When no state has
+arrived for ``stale_after_s`` of wall time every status goes STALE.
 """
 
 from __future__ import annotations
 
-from collections import deque
-
-import numpy as np
+import math
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock as RosClock
+from rclpy.clock import ClockType
 from rclpy.node import Node
 
 from eha_ros.graph import LEVEL_ERROR, LEVEL_NAMES, LEVEL_OK, LEVEL_WARN
 from eha_ros.msg import ActuatorState, HealthStatus
 from eha_ros.physics import ParameterError, load_params
-from eha_ros.physics.valve_test import MAP_POINTS
-from eha_ros.surrogates.base import SurrogateError
-from eha_ros.surrogates.health import (HealthThresholds, InServiceEstimator, ValveTestEstimator,
-                                       classify)
+from eha_ros.surrogates.health import HealthThresholds, InServiceEstimator
+from eha_ros.surrogates.monitor import ITEM_UNITS, ITEMS, MonitorCore
 
 from .common import (TOPIC_DIAGNOSTICS, TOPIC_HEALTH, TOPIC_STATE, advertise, declare,
-                     run_node, stamp_to_ns, subscribe, validator)
+                     ns_to_stamp, run_node, stamp_to_ns, subscribe, validator)
 
 _LEVEL_BYTES = {LEVEL_OK: DiagnosticStatus.OK, LEVEL_WARN: DiagnosticStatus.WARN,
                 LEVEL_ERROR: DiagnosticStatus.ERROR}
+#: Prefix of this node's DiagnosticStatus names.
+STATUS_PREFIX = 'health_monitor: '
+
+
+def health_message(report, core: MonitorCore) -> HealthStatus:
+    """The ``HealthStatus`` of a report (every monitored parameter's last estimate)."""
+    out = HealthStatus()
+    ns_to_stamp(out.header.stamp, report.stamp_ns)
+    out.header.frame_id = 'servovalve'
+    out.radial_clearance_m = float(report.radial_clearance_m)
+    out.radial_clearance_std_m = float(report.radial_clearance_std_m)
+    out.overlap_m = float(report.overlap_m)
+    out.overlap_std_m = float(report.overlap_std_m)
+    out.pressure_residual_pa = float(report.pressure_residual_pa)
+    out.samples_used = int(report.samples_used)
+    out.level = int(report.level)
+    out.method = report.method
+    out.message = report.message
+    names, values, stds, levels = [], [], [], []
+    for name in ITEMS:
+        item = core.items.get(name)
+        names.append(name)
+        values.append(float(item.value) if item else math.nan)
+        stds.append(float(item.std) if item else math.nan)
+        levels.append(int(item.level) if item else 0)
+    out.parameter_names = names
+    out.parameter_values = values
+    out.parameter_stds = stds
+    out.parameter_levels = levels
+    return out
+
+
+def _kv(key, value) -> KeyValue:
+    return KeyValue(key=key, value=value if isinstance(value, str) else f'{value:.6g}')
 
 
 class HealthMonitor(Node):
-    """Wear estimation node."""
+    """Health monitoring node."""
 
     def __init__(self, **kwargs):
         super().__init__('health_monitor', **kwargs)
         path = declare(self, 'params_file', '', 'physical parameter YAML (empty: installed)')
         limits = declare(self, 'thresholds_file', '', 'health threshold YAML (empty: the '
                          'installed config/health.yaml)')
-        self.model_name = declare(self, 'model', 'steady', 'valve model fitted: steady (the '
-                                  'steady-state valve) or a shipped 4-input surrogate (nn, lut)',
-                                  choices=('steady', 'nn', 'lut'))
-        self.window_s = declare(self, 'window_s', 1.0, 'samples of the last window_s [s] are '
-                                'fitted', 0.01, 3600.0)
-        self.update_s = declare(self, 'update_period_s', 0.5, 'state time between estimates '
-                                '[s]', 0.001, 3600.0)
-        self.settle_s = declare(self, 'settle_s', 0.05, 'state time ignored at start [s]', 0.0,
-                                3600.0)
+        self.model_name = declare(self, 'model', 'steady', 'valve model fitted in service: '
+                                  'steady (the steady-state valve table) or a shipped 4-input '
+                                  'surrogate (nn, lut)', choices=('steady', 'nn', 'lut'))
+        window_s = declare(self, 'window_s', 1.0, 'samples of the last window_s [s] are '
+                           'fitted', 0.01, 3600.0)
+        update_s = declare(self, 'update_period_s', 0.5, 'state time between estimates [s]',
+                           0.001, 3600.0)
+        settle_s = declare(self, 'settle_s', 0.05, 'state time ignored at start [s]', 0.0,
+                           3600.0)
+        self.hardware_id = declare(self, 'hardware_id', 'eha/servovalve', 'hardware_id of the '
+                                   'DiagnosticStatus messages (the monitored unit)')
         self.params = load_params(path or None)
         self.limits = HealthThresholds.load(limits or None)
+        stale = declare(self, 'stale_after_s', float(self.limits.stale_after_s), 'wall time '
+                        'without states after which every diagnostic goes STALE [s]', 0.01,
+                        3600.0)
+        self.stale_after_s = stale
         model = None
         if self.model_name != 'steady':
             from eha_ros.surrogates.base import load_surrogate
             model = load_surrogate(self.model_name, self.params).p12
-        self.estimator = InServiceEstimator(self.params, model=model)
-        try:
-            self.test_estimator = ValveTestEstimator(self.params)
-            self.test_error = ''
-        except (SurrogateError, OSError) as exc:  # in-service estimation still works
-            self.test_estimator = None
-            self.test_error = ' '.join(str(exc).split())
+        self.core = MonitorCore(self.params, self.limits, window_s, update_s, settle_s,
+                                in_service=InServiceEstimator(self.params, model=model,
+                                                              limits=self.limits))
         self._warm_up()
-        self.curves = {}          # flow -> {point: (xs, p12)} of the running valve test
-        self.curves_done = []     # (q, xs, p12) of its complete curves
-        self.in_test = False
         self.add_on_set_parameters_callback(validator(self._on_set))
         self.health_pub = advertise(self, HealthStatus, TOPIC_HEALTH)
         self.diag_pub = advertise(self, DiagnosticArray, TOPIC_DIAGNOSTICS)
-        subscribe(self, ActuatorState, TOPIC_STATE, self._on_state)
-        self.samples = deque()
-        self.next_ns = None
+        self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix='health_fit')
+        self._pending = 0
+        # in lockstep (sim time) every estimate is made, whatever it waits: the published
+        # data must not depend on timing; in realtime a late in-service fit is dropped
+        self._may_drop = not self.get_parameter('use_sim_time').value
+        self._lock = threading.Lock()
         self.last = None
         self.published = 0
+        self.dropped = 0
+        self._last_state_wall = None
+        self._stale = False
+        subscribe(self, ActuatorState, TOPIC_STATE, self._on_state)
+        self.create_timer(0.5, self._check_stale,
+                          clock=RosClock(clock_type=ClockType.STEADY_TIME))
+
+    @property
+    def scheduled(self) -> int:
+        """In-service estimates that fell due so far."""
+        return self.core.scheduled
 
     def _warm_up(self):
-        """Compile (or load from numba's cache) the kernels the estimates call, before the
-        first state arrives: an estimate then takes milliseconds, not a compilation."""
-        xs = np.linspace(-1e-4, 1e-4, 12)
-        q = np.zeros(12)
-        self.estimator.estimate(xs, q, self.estimator._predict(
-            xs, q, self.params.overlap_supply_m, self.params.radial_clearance_m))
-        if self.test_estimator is not None:
+        """Compile (or load from numba's cache) what the estimates call before the first
+        state arrives: an estimate then takes milliseconds, not a compilation."""
+        import numpy as np
+        if self.core.valve_test is not None:
             from eha_ros.physics.maps import transient_map
-            grid = self.test_estimator.model.xs_m
-            self.test_estimator.estimate([(1e-5, grid, transient_map(
+            grid = self.core.valve_test.model.xs_m
+            self.core.valve_test.estimate([(1e-5, grid, transient_map(
                 grid, 1e-5, params=self.params, t_end_s=1e-5)['p12_pa'])])
+        if self.core.in_service.table is None:
+            xs = np.linspace(-1e-5, 1e-5, 12)
+            self.core.in_service.estimate(xs, np.zeros(12), np.zeros(12))
 
     def _on_set(self, changes):
-        if {'params_file', 'thresholds_file', 'model'} & set(changes):
-            raise ParameterError('params_file, thresholds_file and model cannot change while '
-                                 'running')
+        frozen = {'params_file', 'thresholds_file', 'model'} & set(changes)
+        if frozen:
+            raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
         if 'window_s' in changes:
-            self.window_s = float(changes['window_s'])
+            self.core.window_s = float(changes['window_s'])
         if 'update_period_s' in changes:
-            self.update_s = float(changes['update_period_s'])
+            self.core.update_s = float(changes['update_period_s'])
+        if 'stale_after_s' in changes:
+            self.stale_after_s = float(changes['stale_after_s'])
+        if 'hardware_id' in changes:
+            self.hardware_id = str(changes['hardware_id'])
 
     def _on_state(self, msg: ActuatorState):
-        t_ns = stamp_to_ns(msg.header.stamp)
-        if msg.status == ActuatorState.STATUS_VALVE_TEST:
-            self._on_valve_test(msg)
-            return
-        if self.in_test:  # the test is over: the in-service window starts afresh
-            self.in_test = False
-            self.next_ns = None
-        if msg.status == ActuatorState.STATUS_DIVERGED or msg.sim_time_s < self.settle_s:
-            return
-        self.samples.append((t_ns, msg.spool_position_m, msg.load_flow_m3_s, msg.p12_pa))
-        while self.samples and self.samples[0][0] < t_ns - self.window_s * 1e9:
-            self.samples.popleft()
-        if self.next_ns is None:
-            self.next_ns = t_ns + int(self.update_s * 1e9)
-        if t_ns >= self.next_ns:
-            self.next_ns = t_ns + int(self.update_s * 1e9)
-            self.publish_estimate(msg.header.stamp)
+        self._last_state_wall = time.monotonic()
+        self._stale = False
+        for job in self.core.on_state(stamp_to_ns(msg.header.stamp), msg):
+            with self._lock:
+                if self._may_drop and job.kind == 'in-service' and self._pending > 0:
+                    self.dropped += 1   # the worker is still on the previous one
+                    continue
+                self._pending += 1
+            self.worker.submit(self._run, job)
 
-    def _on_valve_test(self, msg: ActuatorState):
-        if not self.in_test:
-            self.in_test = True
-            self.curves, self.curves_done = {}, []
-            self.samples.clear()
-        if not msg.valve_test_point_end:
-            return
-        q = msg.load_flow_m3_s
-        curve = self.curves.setdefault(q, {})
-        curve[msg.valve_test_point] = (msg.spool_position_m, msg.p12_pa)
-        n = MAP_POINTS
-        if msg.valve_test_point != n - 1:
-            return
-        if len(curve) < n:  # points lost (realtime): the network needs the whole curve
-            self.get_logger().warning(f'valve test curve at q = {q:g} m^3/s has {len(curve)} of '
-                                      f'{n} points: not used')
-            return
-        pts = [curve[k] for k in sorted(curve)]
-        self.curves_done.append((q, np.array([x for x, _ in pts]),
-                                 np.array([p for _, p in pts])))
-        self.publish_estimate(msg.header.stamp, valve_test=True)
-
-    def publish_estimate(self, stamp, valve_test: bool = False):
-        """Estimate from the buffered samples (or the valve test's curves) and publish
-        HealthStatus and /diagnostics."""
-        _, xs, q, p12 = zip(*self.samples) if self.samples else ((), (), (), ())
-        out = HealthStatus()
-        out.header.stamp = stamp
-        out.header.frame_id = 'servovalve'
-        estimator = self.test_estimator if valve_test else self.estimator
+    def _run(self, job):
         try:
-            if not valve_test:
-                est = self.estimator.estimate(xs, q, p12)
-            elif estimator is None:
-                raise ParameterError(f'the diagnostic network is not usable: {self.test_error}')
-            else:
-                est = estimator.estimate(self.curves_done)
-        except ValueError as exc:  # ParameterError included
-            out.level = HealthStatus.LEVEL_ERROR
-            out.method = ValveTestEstimator.method if valve_test else self.estimator.method
-            out.message = f'no estimate: {exc}'
-        else:
-            level, text = classify(est, self.limits)
-            out.radial_clearance_m = est.radial_clearance_m
-            out.radial_clearance_std_m = est.radial_clearance_std_m
-            out.overlap_m = est.overlap_m
-            out.overlap_std_m = est.overlap_std_m
-            out.pressure_residual_pa = est.pressure_residual_pa
-            out.samples_used = est.samples_used
-            out.level = level
-            out.method = est.method
-            out.message = text
+            report = job.run()
+            self.publish_report(report)
+        except Exception as exc:  # never let the worker die silently
+            self.get_logger().error(f'estimate failed: {type(exc).__name__}: {exc}')
+        finally:
+            with self._lock:
+                self._pending -= 1
+
+    def publish_report(self, report):
+        """Publish HealthStatus and /diagnostics for one report."""
+        out = health_message(report, self.core)
         self.last = out
         self.health_pub.publish(out)
-        arr = DiagnosticArray()
-        arr.header.stamp = stamp
-        st = DiagnosticStatus()
-        st.level = _LEVEL_BYTES[int(out.level)]
-        st.name = 'eha_ros/servovalve'
-        st.message = out.message
-        st.hardware_id = 'servovalve'
-        st.values = [KeyValue(key=k, value=f'{v:.6g}') for k, v in (
-            ('radial_clearance_m', out.radial_clearance_m),
-            ('radial_clearance_std_m', out.radial_clearance_std_m),
-            ('overlap_m', out.overlap_m), ('overlap_std_m', out.overlap_std_m),
-            ('pressure_residual_pa', out.pressure_residual_pa))]
-        st.values.append(KeyValue(key='method', value=out.method))
-        arr.status = [st]
-        self.diag_pub.publish(arr)
+        self.diag_pub.publish(self._diagnostics(out, report.stamp_ns))
         self.published += 1
-        self.get_logger().info(f'[{LEVEL_NAMES[out.level]}] {out.message}')
+        self.get_logger().info(f'[{LEVEL_NAMES[out.level]}] {out.method}: {out.message}')
+
+    def _diagnostics(self, out: HealthStatus, stamp_ns: int, stale_reason: str = ''
+                     ) -> DiagnosticArray:
+        arr = DiagnosticArray()
+        ns_to_stamp(arr.header.stamp, stamp_ns)
+        statuses = []
+        summary = DiagnosticStatus(name=STATUS_PREFIX + 'estimate',
+                                   hardware_id=self.hardware_id)
+        if out is None:
+            summary.level, summary.message = DiagnosticStatus.STALE, 'no estimate yet'
+        else:
+            summary.level = _LEVEL_BYTES[int(out.level)]
+            summary.message = out.message
+            summary.values = [_kv('method', out.method), _kv('samples_used', out.samples_used),
+                              _kv('pressure_residual_pa', out.pressure_residual_pa),
+                              _kv('stamp_ns', str(stamp_ns))]
+        statuses.append(summary)
+        for name in ITEMS:
+            item = self.core.items.get(name)
+            st = DiagnosticStatus(name=STATUS_PREFIX + name, hardware_id=self.hardware_id)
+            if item is None:
+                st.level = DiagnosticStatus.STALE
+                st.message = ('not estimated yet' + (
+                    ' (needs a pre-flight check: scenario preflight_check or maintenance_test)'
+                    if name not in ('radial_clearance_m', 'overlap_supply_m') else ''))
+            else:
+                st.level = _LEVEL_BYTES[int(item.level)]
+                st.message = item.message
+                st.values = [_kv('value', item.value), _kv('std', item.std),
+                             _kv('unit', ITEM_UNITS[name]), _kv('method', item.method),
+                             _kv('stamp_ns', str(item.stamp_ns))]
+            statuses.append(st)
+        if stale_reason:
+            for st in statuses:
+                st.level = DiagnosticStatus.STALE
+                st.message = f'{stale_reason}; last: {st.message}'
+        arr.status = statuses
+        return arr
+
+    def _check_stale(self):
+        if self._last_state_wall is None:
+            silent = True
+            reason = 'no actuator state received yet'
+        else:
+            gap = time.monotonic() - self._last_state_wall
+            silent = gap > self.stale_after_s
+            reason = f'no actuator state for {gap:.1f} s'
+        if not silent or self._stale:
+            return
+        self._stale = self._last_state_wall is not None  # once per silence
+        stamp = self.get_clock().now().nanoseconds
+        self.diag_pub.publish(self._diagnostics(self.last, stamp, reason))
+
+    def close(self):
+        self.worker.shutdown(wait=True)
 
 
 def main(args=None) -> int:

@@ -19,7 +19,12 @@ time it publishes tick k again.
 Valve test (``valve_test: true``): before operating, the plant runs the diagnostic valve test of
 :mod:`eha_ros.physics.valve_test` - the reference's map sweep at ``valve_test_flows_m3_s``, one
 tick at a time, the jack clamped - and reports it with status ``STATUS_VALVE_TEST``; the health
-monitor reads the wear from those curves.
+monitor reads the wear from those curves.  Pre-flight check (``preflight_check: true``): then
+(after the valve test, if any) the plant drives the coil open loop along
+:data:`eha_ros.physics.valve_test.PREFLIGHT_PROFILE` from the actuator at rest, the jack free
+and the controller's commands ignored, and reports it with status ``STATUS_PREFLIGHT``, the
+tick's index in ``valve_test_point`` and ``valve_test_point_end`` on its last tick; the health
+monitor reads the faults from that record.
 
 Wear and degradation (overlap, clearance, eccentricity, Khsv, KGM, K_intas, backlash, friction,
 hysteresis, offset, leakage) are parameters that can change while running; a non-physical value
@@ -39,7 +44,7 @@ from eha_ros.msg import ActuatorState, ServovalveCommand
 from eha_ros.physics import ParameterError, Plant, SimulationDiverged, load_params
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import S_P1, S_P2, S_XJ
-from eha_ros.physics.valve_test import ValveTest
+from eha_ros.physics.valve_test import PreflightCheck, ValveTest
 
 from eha_ros.graph import MODELS
 
@@ -97,6 +102,8 @@ class ServovalvePlant(Node):
                              'sweep, jack clamped) before operating')
         flows = declare(self, 'valve_test_flows_m3_s', list(DEFAULT_TEST_FLOWS_M3_S),
                         'valve test: imposed load flows [m^3/s], one P12 curve each')
+        preflight = declare(self, 'preflight_check', False, 'run the pre-flight check (open-'
+                            'loop current steps and sines, jack free) before operating')
         self.max_catch_up = declare(self, 'max_catch_up', 50, 'realtime: most late ticks '
                                     'caught up at once; a longer stall slips', 1, 100000)
         if self.mode not in MODES:
@@ -116,6 +123,10 @@ class ServovalvePlant(Node):
         self.test_sample = None
         if self.valve_test is not None:
             self.valve_test.sample(1, params)  # JIT first
+        self.preflight = (PreflightCheck(period_ns, params.current_limit_a) if preflight
+                          else None)
+        self.preflight_tick = 0
+        self.preflight_last = -1   # self.ticks of the last pre-flight tick
         self.add_on_set_parameters_callback(validator(self._on_set))
         self.state_pub = advertise(self, ActuatorState, TOPIC_STATE)
         subscribe(self, ServovalveCommand, TOPIC_SERVOVALVE, self._on_command)
@@ -142,7 +153,7 @@ class ServovalvePlant(Node):
     # parameters --------------------------------------------------------------------------
     def _on_set(self, changes):
         frozen = {'model', 'dt_s', 'rate_hz', 'mode', 'seed', 'params_file', 'valve_test',
-                  'valve_test_flows_m3_s'} & set(changes)
+                  'valve_test_flows_m3_s', 'preflight_check'} & set(changes)
         if frozen:
             raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
         wear = {k: v for k, v in changes.items() if k in WEAR}
@@ -169,6 +180,14 @@ class ServovalvePlant(Node):
                 self.test_tick += 1
                 self.test_sample = self.valve_test.sample(self.test_tick, self.plant.params)
                 self.plant.hold(self.steps_per_tick)
+            elif self.preflight is not None and self.preflight_tick < self.preflight.n_ticks:
+                if self.preflight_tick == 0:  # from the actuator at rest
+                    self.plant.state[:] = self._rest_state()
+                self.test_sample = None
+                self.plant.advance(float(self.preflight.command_a[self.preflight_tick]),
+                                   self.steps_per_tick)
+                self.preflight_tick += 1
+                self.preflight_last = self.ticks + 1
             else:
                 self.test_sample = None
                 self.plant.advance(self.current_a, self.steps_per_tick)
@@ -181,6 +200,10 @@ class ServovalvePlant(Node):
             self.done = True
             self.get_logger().info(f'scenario complete at t = {self.plant.time_s:.6g} s')
         return True
+
+    def _rest_state(self):
+        from eha_ros.physics.plant import initial_state
+        return initial_state(self.plant.params)
 
     def _state_msg(self) -> ActuatorState:
         s = self.plant.snapshot()
@@ -213,10 +236,17 @@ class ServovalvePlant(Node):
             msg.jack_velocity_m_s = 0.0
             msg.valve_test_point = t.point
             msg.valve_test_point_end = t.point_end
+        preflight = (self.preflight is not None and t is None
+                     and self.preflight_tick > 0 and self.preflight_last == self.ticks)
+        if preflight:
+            msg.valve_test_point = self.preflight_tick - 1
+            msg.valve_test_point_end = self.preflight_tick == self.preflight.n_ticks
         if self.diverged:
             msg.status = ActuatorState.STATUS_DIVERGED
         elif t is not None:
             msg.status = ActuatorState.STATUS_VALVE_TEST
+        elif preflight:
+            msg.status = ActuatorState.STATUS_PREFLIGHT
         elif abs(st[S_XJ]) >= p.jack_stroke_m:
             msg.status = ActuatorState.STATUS_END_STOP
         elif min(st[S_P1], st[S_P2]) <= p.vapour_pressure_pa:

@@ -81,6 +81,7 @@ class Scenario:
     com_times_s: tuple = ()
     com_values_m: tuple = ()
     valve_test_flows_m3_s: tuple = ()
+    preflight_check: bool = False
     description: str = ''
 
     def __post_init__(self):
@@ -176,8 +177,12 @@ def load_scenarios(path: Path | str | None = None) -> dict[str, Scenario]:
                 except (TypeError, ValueError):
                     raise ParameterError(f'{path}: scenario {name}: {key} must be a list of '
                                          'numbers') from None
+        if 'preflight_check' in kw:
+            if not isinstance(kw['preflight_check'], bool):
+                raise ParameterError(f'{path}: scenario {name}: preflight_check must be true or '
+                                     'false')
         for key, value in list(kw.items()):
-            if key not in ('waveform', 'description') + _TUPLES:
+            if key not in ('waveform', 'description', 'preflight_check') + _TUPLES:
                 try:
                     kw[key] = float(value)
                 except (TypeError, ValueError):

@@ -23,7 +23,9 @@ import numpy as np
 from .maps import spool_grid, transient_map
 from .params import ParameterError, PlantParams
 
-__all__ = ['MAP_POINTS', 'MAP_HOLD_S', 'ValveTest', 'ValveTestSample']
+__all__ = ['MAP_POINTS', 'MAP_HOLD_S', 'ValveTest', 'ValveTestSample', 'PREFLIGHT_PROFILE',
+           'PREFLIGHT_S', 'PREFLIGHT_SIGNALS', 'PreflightCheck', 'preflight_command',
+           'run_preflight']
 
 #: Spool positions of a curve (the databases' grid).
 MAP_POINTS = 133
@@ -102,3 +104,102 @@ class ValveTest:
         if not (math.isfinite(p1) and math.isfinite(p2)):  # transient_map raises first
             raise FloatingPointError('valve test transient is not finite')
         return ValveTestSample(xs, q, p1, p2, point, curve, m == self.ticks_per_point - 1)
+
+
+# --- pre-flight check ---------------------------------------------------------------------
+
+#: Segments of the pre-flight check's coil-current command: ``(start_s, end_s, kind, a, b)``
+#: with currents as fractions of the rated current ``current_limit_a``; ``step``: ``a`` held;
+#: ``sine``: ``a sin(2 pi (t - start) / b)``.  What each part makes observable:
+#:
+#: * 0 A holds (start, between parts, end): the coil current reads the torque motor's offset
+#:   (``offset_a``), the spool's drift from null shows it too;
+#: * current steps of 30 % and 10 % rated, both signs: the spool's steady position per
+#:   current is the torque-motor gain (``demagnetisation``), its first milliseconds the
+#:   first-stage drive (``filter_clogging`` lowers the nozzle pressure gain and slows it);
+#:   the jack breaks away when P12 AJ exceeds its seals' breakaway (``jack_static_friction_n``);
+#: * a 20 % sine at 3.3 Hz and a 5 % sine at 4 Hz: the flapper's deflection while the spool
+#:   slides is the force the spool needs (viscous drag, scaled by the first stage's gain, and
+#:   ``spool_static_friction_n`` at every reversal, where the spool sticks); the jack reverses
+#:   through its friction at every half period.
+PREFLIGHT_PROFILE = (
+    (0.00, 0.05, 'step', 0.0, 0.0),
+    (0.05, 0.10, 'step', 0.3, 0.0),
+    (0.10, 0.15, 'step', -0.3, 0.0),
+    (0.15, 0.20, 'step', 0.1, 0.0),
+    (0.20, 0.25, 'step', -0.1, 0.0),
+    (0.25, 0.30, 'step', 0.0, 0.0),
+    (0.30, 0.90, 'sine', 0.2, 0.3),
+    (0.90, 1.15, 'sine', 0.05, 0.25),
+    (1.15, 1.20, 'step', 0.0, 0.0),
+)
+#: Duration of the pre-flight check [s].
+PREFLIGHT_S = 1.2
+#: Signals the plant reports at every tick of the check (the ActuatorState fields).
+PREFLIGHT_SIGNALS = ('coil_current_a', 'spool_position_m', 'flapper_position_m', 'p12_pa',
+                     'jack_position_m', 'jack_velocity_m_s')
+
+
+class PreflightCheck:
+    """Tick schedule of the pre-flight check: the jack free, the controller bypassed, the coil
+    current commanded open loop along :data:`PREFLIGHT_PROFILE` from the actuator at rest.
+
+    Parameters
+    ----------
+    tick_ns : int
+        Tick period [ns]; the check lasts :data:`PREFLIGHT_S` and every segment boundary must
+        fall on a tick.
+    current_limit_a : float
+        Rated current [A] the profile's fractions refer to.
+    """
+
+    def __init__(self, tick_ns: int, current_limit_a: float):
+        if tick_ns <= 0:
+            raise ParameterError('pre-flight check: the tick period must be positive')
+        n = PREFLIGHT_S * 1e9 / tick_ns
+        if abs(n - round(n)) > 1e-9 or any(
+                abs(b * 1e9 / tick_ns - round(b * 1e9 / tick_ns)) > 1e-9
+                for _, b, *_ in PREFLIGHT_PROFILE):
+            raise ParameterError(f'pre-flight check: its segments must be whole numbers of '
+                                 f'ticks of {tick_ns} ns')
+        self.tick_ns = int(tick_ns)
+        self.n_ticks = int(round(n))
+        self.current_limit_a = float(current_limit_a)
+        self.command_a = preflight_command(self.n_ticks, self.tick_ns * 1e-9,
+                                           self.current_limit_a)
+
+    @property
+    def duration_s(self) -> float:
+        return self.n_ticks * self.tick_ns * 1e-9
+
+
+def preflight_command(n_ticks: int, tick_s: float, current_limit_a: float) -> np.ndarray:
+    """Coil-current command [A] held during each tick ``k`` (``t = k tick_s`` at its start)."""
+    t = np.arange(n_ticks) * tick_s
+    out = np.zeros(n_ticks)
+    for t0, t1, kind, a, b in PREFLIGHT_PROFILE:
+        m = (t >= t0 - 1e-12) & (t < t1 - 1e-12)
+        if kind == 'step':
+            out[m] = a
+        else:
+            out[m] = a * np.sin(2.0 * np.pi * (t[m] - t0) / b)
+    return out * current_limit_a
+
+
+def run_preflight(params: PlantParams, seed: int = 0, tick_s: float = 1e-3,
+                  dt_s: float = 1e-6) -> dict:
+    """The pre-flight check on the plant alone, as the plant node runs it tick by tick: arrays
+    (one value per tick, the state at the tick's end) of ``command_a`` and
+    :data:`PREFLIGHT_SIGNALS`.  Training data for :mod:`eha_ros.surrogates.faults`."""
+    from .plant import Plant
+    check = PreflightCheck(int(round(tick_s * 1e9)), params.current_limit_a)
+    plant = Plant(params, dt_s=dt_s, seed=seed)
+    steps = int(round(tick_s / dt_s))
+    out = {k: np.empty(check.n_ticks) for k in PREFLIGHT_SIGNALS}
+    for k in range(check.n_ticks):
+        plant.advance(float(check.command_a[k]), steps)
+        s = plant.snapshot()
+        for name in PREFLIGHT_SIGNALS:
+            out[name][k] = s[name]
+    out['command_a'] = check.command_a.copy()
+    return out

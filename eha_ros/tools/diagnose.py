@@ -1,129 +1,219 @@
-"""``eha-diagnose FILE.mcap``: offline wear estimate from a recording.
+"""``eha-diagnose FILE.mcap``: the health monitor's estimates, offline, from a recording.
 
-Reads the ``/eha/state`` samples of a recording (spool position, load flow, load pressure),
-fits the valve model to them as the health monitor does
-(:class:`eha_ros.surrogates.health.InServiceEstimator`), grades the estimate with
-``config/health.yaml`` and prints it (``--json``: one JSON object).  ``--window S`` uses only
-the last S seconds; ``--skip S`` drops the first S seconds (start-up).
+Replays the recording's ``/eha/state`` through the health monitor's own logic
+(:class:`eha_ros.surrogates.monitor.MonitorCore`, the same code the ``health_monitor`` node
+runs) and prints every monitored parameter under the plant's parameter names
+(``radial_clearance_m``, ``overlap_supply_m``, ``demagnetisation``, ``filter_clogging``,
+``spool_static_friction_n``, ``jack_static_friction_n``, ``offset_a``) with its standard
+deviation, level and reason (``--json``: one JSON object).  Where the recording holds the live
+monitor's ``/eha/health`` too, every recorded message is compared with the replay
+(``live_agrees``: equal bit for bit; in lockstep they must be).
 
-Bad input (missing, truncated, corrupt or non-MCAP file, no ``/eha/state`` topic, too few
-samples) ends with one line on stderr and exit status 2.
+``--method``: ``auto`` (everything the recording supports: valve test, pre-flight check, else
+the in-service estimates), ``test`` (the recording must hold a valve test or a pre-flight
+check), ``network`` (a valve test), ``preflight`` (a pre-flight check) or ``steady`` (the
+in-service estimate only).  ``--window S`` / ``--update S`` / ``--skip S``: the monitor's
+``window_s``, ``update_period_s`` and ``settle_s``.
 
-A recording of a diagnostic valve test (states with ``STATUS_VALVE_TEST``) is read as the health
-monitor reads it: the P12 curves at the point ends go to the diagnostic network
-(:class:`eha_ros.surrogates.health.ValveTestEstimator`, method ``diagnostic-network``);
-``--method steady`` fits the in-service samples instead.
+Bad input (missing, truncated, corrupt or non-MCAP file, no ``/eha/state`` topic, no or an
+incomplete test segment where one is required, too few samples) ends with one line on stderr
+and exit status 2.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
+from types import SimpleNamespace
 
 import numpy as np
 
-from eha_ros.graph import LEVEL_NAMES as LEVELS, STATUS_DIVERGED, STATUS_VALVE_TEST, TOPIC_STATE
+from eha_ros.graph import (LEVEL_NAMES, STATUS_PREFLIGHT, STATUS_VALVE_TEST, TOPIC_HEALTH,
+                           TOPIC_STATE)
 from eha_ros.physics import ParameterError, load_params
-from eha_ros.physics.valve_test import MAP_POINTS
 from eha_ros.recording.arrays import load_for_tool
 from eha_ros.recording.definitions import RecordingError
-from eha_ros.surrogates.base import SurrogateError
-from eha_ros.surrogates.health import (HealthThresholds, InServiceEstimator, ValveTestEstimator,
-                                       classify)
+from eha_ros.surrogates.health import HealthThresholds
+from eha_ros.surrogates.monitor import ITEMS, MonitorCore
+
+METHODS = ('auto', 'test', 'network', 'preflight', 'steady')
+_STATE_FIELDS = ('status', 'sim_time_s', 'spool_position_m', 'load_flow_m3_s', 'p12_pa',
+                 'valve_test_point', 'valve_test_point_end', 'coil_current_a',
+                 'flapper_position_m', 'jack_position_m', 'jack_velocity_m_s')
 
 
-def _valve_test_curves(a):
-    """``(q, xs, p12)`` of every complete curve of the valve test in the arrays ``a``."""
-    ends = (a['status'] == STATUS_VALVE_TEST) & a.get(
-        'valve_test_point_end', np.zeros(a['status'].size, dtype=bool))
-    curves = []
-    q_all = a['load_flow_m3_s'][ends]
-    for q in dict.fromkeys(q_all.tolist()):  # in order of appearance
-        sel = q_all == q
-        point = a['valve_test_point'][ends][sel]
-        _, first = np.unique(point, return_index=True)
-        if first.size == MAP_POINTS:
-            curves.append((q, a['spool_position_m'][ends][sel][first],
-                           a['p12_pa'][ends][sel][first]))
-    return curves
+def _recorded_health(path) -> list:
+    """The recorded HealthStatus messages as flat dicts (sequence fields kept)."""
+    from eha_ros.recording.mcap_io import McapReader, flatten
+    try:
+        return [flatten(m.message) for m in McapReader(path, topics=[TOPIC_HEALTH])]
+    except (OSError, RecordingError):
+        return []
 
 
-def diagnose(path, params=None, window_s=None, skip_s=0.05, max_samples=400, method='auto'):
-    """Wear estimate (dict) of the recording at ``path``; ``method``: ``auto`` (the valve
-    test's curves if the recording has one, else the in-service fit), ``network`` or
-    ``steady``."""
+def _same(a, b) -> bool:
+    """Bit-for-bit equality of two floats (NaN equals NaN)."""
+    return np.float64(a).tobytes() == np.float64(b).tobytes()
+
+
+def compare_live(recorded: list, reports: list, core_items: list) -> dict:
+    """Recorded ``/eha/health`` against the replay's reports, field by field."""
+    if not recorded:
+        return {'live_messages': 0, 'live_agrees': None}
+    mism = []
+    if len(recorded) != len(reports):
+        mism.append(f'{len(recorded)} recorded, {len(reports)} replayed')
+    for k, (m, (r, items)) in enumerate(zip(recorded, zip(reports, core_items))):
+        stamp = int(m['header.stamp.sec']) * 1_000_000_000 + int(m['header.stamp.nanosec'])
+        pairs = [('stamp', stamp, r.stamp_ns), ('level', m['level'], r.level),
+                 ('method', m['method'], r.method), ('message', m['message'], r.message),
+                 ('samples_used', m['samples_used'], r.samples_used)]
+        ok = all(a == b for _, a, b in pairs)
+        for key, val in (('radial_clearance_m', r.radial_clearance_m),
+                         ('radial_clearance_std_m', r.radial_clearance_std_m),
+                         ('overlap_m', r.overlap_m), ('overlap_std_m', r.overlap_std_m),
+                         ('pressure_residual_pa', r.pressure_residual_pa)):
+            ok &= _same(m[key], val)
+        vals = m.get('parameter_values') or []
+        stds = m.get('parameter_stds') or []
+        ok &= len(vals) == len(items) and all(
+            _same(v, i[0]) and _same(s, i[1]) for v, s, i in zip(vals, stds, items))
+        if not ok:
+            mism.append(f'message {k} (stamp {stamp} ns) differs')
+    return {'live_messages': len(recorded), 'live_agrees': not mism,
+            'live_mismatches': mism[:5]}
+
+
+def diagnose(path, params=None, method: str = 'auto', window_s: float = 1.0,
+             update_s: float = 0.5, skip_s: float = 0.05, limits=None) -> dict:
+    """Replay the recording at ``path``; a dict of what the monitor reports (see the module
+    docstring).  Raises ParameterError on bad input."""
+    if method not in METHODS:
+        raise ParameterError(f'unknown method {method!r} (one of {", ".join(METHODS)})')
     try:
         a = load_for_tool(path, TOPIC_STATE, 'eha-diagnose')
     except RecordingError as exc:  # unreadable, corrupt, or without the topic
         raise ParameterError(str(exc)) from None
-    needed = ('stamp_ns', 'spool_position_m', 'load_flow_m3_s', 'p12_pa')
-    if a['log_time_ns'].size == 0 or any(k not in a for k in needed):
-        raise ParameterError(f'{path}: no usable {TOPIC_STATE} samples')
-    t = a['stamp_ns'] * 1e-9
+    missing = [f for f in ('stamp_ns',) + _STATE_FIELDS if f not in a]
+    if a['log_time_ns'].size == 0 or missing:
+        raise ParameterError(f'{path}: no usable {TOPIC_STATE} samples'
+                             + (f' (no field {missing[0]})' if missing else ''))
     params = params or load_params()
-    status = a.get('status')
-    curves = _valve_test_curves(a) if status is not None else []
-    if method == 'network' or (method == 'auto' and curves):
-        if not curves:
-            raise ParameterError(f'{path}: no complete valve-test curve (133 points at one '
-                                 'flow) to give the diagnostic network')
-        try:
-            estimator = ValveTestEstimator(params)
-        except (SurrogateError, OSError) as exc:
-            raise ParameterError(' '.join(str(exc).split())) from None
-        keep = (status == STATUS_VALVE_TEST)
-        est = estimator.estimate(curves)
-    else:
-        keep = t >= t.min() + skip_s
-        if window_s:
-            keep &= t >= t.max() - window_s
-        if status is not None:
-            keep &= (status != STATUS_DIVERGED) & (status != STATUS_VALVE_TEST)
-        est = InServiceEstimator(params, max_samples=max_samples).estimate(
-            a['spool_position_m'][keep], a['load_flow_m3_s'][keep], a['p12_pa'][keep])
-    level, text = classify(est, HealthThresholds.load())
+    limits = limits or HealthThresholds.load()
+    status = a['status']
+    has_vt = bool(np.any(status == STATUS_VALVE_TEST))
+    has_pf = bool(np.any(status == STATUS_PREFLIGHT))
+    if method == 'test' and not (has_vt or has_pf):
+        raise ParameterError(f'{path}: no test segment (neither a valve test nor a pre-flight '
+                             'check: record scenario maintenance_test)')
+    if method == 'network' and not has_vt:
+        raise ParameterError(f'{path}: no valve-test segment (record scenario valve_test)')
+    if method == 'preflight' and not has_pf:
+        raise ParameterError(f'{path}: no pre-flight check segment (record scenario '
+                             'preflight_check)')
+    keep = np.ones(status.size, dtype=bool)
+    if method in ('network', 'test') and not has_pf:
+        keep = status == STATUS_VALVE_TEST
+    elif method == 'preflight' or (method == 'test' and not has_vt):
+        keep = status == STATUS_PREFLIGHT
+    elif method == 'test':
+        keep = (status == STATUS_VALVE_TEST) | (status == STATUS_PREFLIGHT)
+    elif method == 'steady':
+        keep = (status != STATUS_VALVE_TEST) & (status != STATUS_PREFLIGHT)
+    states = {k: v[keep] for k, v in a.items()}
+    if states['stamp_ns'].size == 0:
+        raise ParameterError(f'{path}: no {TOPIC_STATE} samples for method {method}')
+    core = MonitorCore(params, limits, window_s, update_s, skip_s)
+    reports = []
+    snapshots = []   # every parameter's (value, std) after each report, as published
+    cols = [states[f] for f in _STATE_FIELDS]
+    stamps = states['stamp_ns']
+    s = SimpleNamespace()
+    for k in range(stamps.size):
+        for name, col in zip(_STATE_FIELDS, cols):
+            v = col[k]
+            setattr(s, name, v.item() if hasattr(v, 'item') else v)
+        for job in core.on_state(int(stamps[k]), s):
+            reports.append(job.run())
+            snapshots.append([(core.items[n].value, core.items[n].std) if n in core.items
+                              else (math.nan, math.nan) for n in ITEMS])
+    test_kinds = {'valve-test', 'preflight'}
+    if method in ('test', 'network', 'preflight'):
+        bad = [r for r in reports if r.kind in test_kinds and r.message.startswith(
+            'no estimate')]
+        if bad:
+            raise ParameterError(f'{path}: {bad[-1].message}')
+        if not any(r.kind in test_kinds for r in reports):
+            raise ParameterError(f'{path}: the test segment is incomplete (cut before its end)')
+    if not reports:
+        raise ParameterError(f'{path}: too short for an estimate ({stamps.size} states, the '
+                             f'first after {update_s:g} s)')
+    chosen = ([r for r in reports if r.kind in test_kinds] or reports)[-1]
+    if chosen.message.startswith('no estimate'):
+        raise ParameterError(f'{path}: {chosen.message}')
     models = a.get('model')
-    return {'file': str(path), 'model': str(models[0]) if models is not None and models.size
-            else '', 'samples_in_file': int(t.size), 'samples_used': est.samples_used,
-            't_from_s': float(t[keep].min()), 't_to_s': float(t[keep].max()),
-            'radial_clearance_m': est.radial_clearance_m,
-            'radial_clearance_std_m': est.radial_clearance_std_m, 'overlap_m': est.overlap_m,
-            'overlap_std_m': est.overlap_std_m,
-            'pressure_residual_pa': est.pressure_residual_pa,
-            'nominal_residual_pa': (est.nominal_residual_pa
-                                    if np.isfinite(est.nominal_residual_pa) else None),
-            'method': est.method,
-            'level': LEVELS[level], 'message': text}
+    t = states['stamp_ns'] * 1e-9
+    out = {'file': str(path), 'model': str(models[0]) if models is not None and models.size
+           else '', 'samples_in_file': int(a['stamp_ns'].size),
+           't_from_s': float(t.min()), 't_to_s': float(t.max()),
+           'method': chosen.method, 'kind': chosen.kind, 'level': LEVEL_NAMES[chosen.level],
+           'message': chosen.message, 'samples_used': chosen.samples_used,
+           'radial_clearance_m': chosen.radial_clearance_m,
+           'radial_clearance_std_m': chosen.radial_clearance_std_m,
+           'overlap_m': chosen.overlap_m, 'overlap_std_m': chosen.overlap_std_m,
+           'pressure_residual_pa': chosen.pressure_residual_pa,
+           'estimates': {n: core.items[n].to_dict() for n in ITEMS if n in core.items},
+           'not_estimated': [n for n in ITEMS if n not in core.items],
+           'reports': len(reports), 'scheduled_in_service': core.scheduled}
+    if method == 'auto':
+        out.update(compare_live(_recorded_health(path), reports, snapshots))
+    return out
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog='eha-diagnose', description=__doc__.splitlines()[0])
     ap.add_argument('file')
-    ap.add_argument('--window', type=float, default=None, help='last S seconds only')
-    ap.add_argument('--skip', type=float, default=0.05, help='drop the first S seconds')
+    ap.add_argument('--method', choices=METHODS, default='auto',
+                    help='auto: all the recording supports; test: valve test and/or '
+                    'pre-flight check required; network: valve test; preflight: pre-flight '
+                    'check; steady: in-service only')
+    ap.add_argument('--window', type=float, default=1.0, help='in-service window [s]')
+    ap.add_argument('--update', type=float, default=0.5, help='in-service period [s]')
+    ap.add_argument('--skip', type=float, default=0.05, help='state time ignored at start [s]')
     ap.add_argument('--params', default=None, help='physical parameter YAML')
-    ap.add_argument('--method', choices=('auto', 'network', 'steady'), default='auto',
-                    help='network: the valve test\'s curves; steady: in-service fit; auto: '
-                    'network if the recording holds a valve test')
+    ap.add_argument('--thresholds', default=None, help='health threshold YAML')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
     try:
-        r = diagnose(args.file, load_params(args.params), args.window, args.skip,
-                     method=args.method)
-    except ParameterError as exc:
-        print(f'eha-diagnose: error: {exc}', file=sys.stderr)
+        for name, v in (('--window', args.window), ('--update', args.update)):
+            if not (v > 0 and math.isfinite(v)):
+                raise ParameterError(f'{name} = {v} must be a positive number of seconds')
+        r = diagnose(args.file, load_params(args.params), args.method, args.window,
+                     args.update, args.skip, HealthThresholds.load(args.thresholds))
+    except (ParameterError, ValueError) as exc:
+        print(f'eha-diagnose: error: {" ".join(str(exc).split())}', file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps(r))
+        print(json.dumps(r, allow_nan=False, default=_json_default))
     else:
-        print(f'{r["file"]}: [{r["level"]}] {r["message"]}')
-        print(f'  radial clearance {r["radial_clearance_m"] * 1e6:.3f} +- '
-              f'{r["radial_clearance_std_m"] * 1e6:.3f} um, overlap {r["overlap_m"] * 1e6:.3f} '
-              f'+- {r["overlap_std_m"] * 1e6:.3f} um, residual '
-              f'{r["pressure_residual_pa"] / 1e6:.3f} MPa, {r["samples_used"]} samples '
-              f'({r["t_from_s"]:.3f}..{r["t_to_s"]:.3f} s, {r["method"]})')
+        print(f'{r["file"]}: [{r["level"]}] {r["kind"]} ({r["method"]}): {r["message"]}')
+        for name, e in r['estimates'].items():
+            print(f'  {name:24s} {e["value"]:.6g} +- {e["std"]:.3g}  [{e["level"]}] '
+                  f'({e["method"]})')
+        for name in r['not_estimated']:
+            print(f'  {name:24s} not estimated (needs a pre-flight check)')
+        if r.get('live_agrees') is not None:
+            print(f'  live /eha/health: {r["live_messages"]} messages, '
+                  f'{"equal to" if r["live_agrees"] else "DIFFERENT from"} the replay')
     return 0
+
+
+def _json_default(x):
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    raise TypeError(type(x).__name__)
 
 
 if __name__ == '__main__':

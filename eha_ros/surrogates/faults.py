@@ -1,0 +1,338 @@
+"""Multi-fault diagnosis from the pre-flight check (:mod:`eha_ros.physics.valve_test`).
+
+The pre-flight check drives the coil open loop (steps and sines, jack free) and records coil
+current, spool, flapper, load pressure and jack at every 1 ms tick.  A network reads from
+these records the degradations the check excites, under the plant's own parameter names
+(:data:`FAULTS`): torque-motor demagnetisation (KGM), first-stage filter clogging (K_intas),
+spool and jack breakaway friction and the torque-motor current offset - and, as nuisances it
+must see through, the valve's clearance and overlap (the valve test reads those better).
+
+Features (:func:`preflight_features`)
+    10 ms means of the coil current less the command, spool, flapper, P12, jack position and
+    velocity (120 x 6), and the spool and flapper in the 5 ticks after each current step
+    (5 x 10): 770 numbers, standardised on the training set.
+
+Network and uncertainty
+    An ensemble of :data:`FAULT_SETTINGS` ``members`` multilayer perceptrons (tanh), each
+    with two outputs per parameter - mean and log-variance of the parameter normalised to its
+    range - trained by Adam on the Gaussian negative log-likelihood (after a mean-squared
+    warm-up).  The estimate is the ensemble mean; its variance is the members' mean variance
+    plus the variance of their means.  Then per parameter a calibration factor (at least 1)
+    scales the standard deviation so that 95 % of the validation cases lie within 2 sigma:
+    the stated deviation is never tighter than what held-out data showed.
+
+Data (:func:`generate`)
+    The pre-flight check on the high-fidelity plant (:func:`eha_ros.physics.valve_test.
+    run_preflight`, 1 us step) at wear points drawn independently per case from a seeded
+    stream: half with every parameter uniform over its range, half with each degraded with
+    probability 0.3 and nominal otherwise (so the nominal valve is well covered); the torque
+    motor's noise seed drawn too.  Dynamic frictions follow their breakaway values at the
+    nominal ratio 0.5.  Training, validation and the benchmark's test cases come from
+    different streams.
+
+Build: ``nice python -m eha_ros.surrogates.faults`` (data about 4 min on 2 cores, training a
+few minutes) writes ``models/faults.npz``.  Inference is numpy only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from pathlib import Path
+
+import numpy as np
+
+from eha_ros.physics import PlantParams, default_params
+from eha_ros.physics.params import replace
+
+from .base import SurrogateError, load_artefact, models_dir, save_artefact
+
+__all__ = ['Fault', 'FAULTS', 'FAULT_NAMES', 'FaultModel', 'FaultEstimate', 'load_faults',
+           'preflight_features', 'draw_wear', 'apply_wear', 'generate', 'train_faults',
+           'FAULT_SETTINGS', 'FAULTS_FILE']
+
+FAULTS_FILE = 'faults.npz'
+
+
+@dataclasses.dataclass(frozen=True)
+class Fault:
+    """One estimated parameter: plant name, unit, nominal value and the range the network
+    was trained over (errors are quoted in % of it)."""
+
+    name: str
+    unit: str
+    nominal: float
+    lo: float
+    hi: float
+    meaning: str
+
+    @property
+    def span(self) -> float:
+        return self.hi - self.lo
+
+
+#: The parameters the pre-flight network estimates (plant parameter names, SI units).
+FAULTS = (
+    Fault('demagnetisation', '1', 0.0, 0.0, 0.5, 'torque-motor demagnetisation KGM'),
+    Fault('filter_clogging', '1', 0.0, 0.0, 0.8, 'first-stage filter clogging K_intas'),
+    Fault('spool_static_friction_n', 'N', 1.0, 0.5, 6.0, 'spool breakaway friction'),
+    Fault('jack_static_friction_n', 'N', 200.0, 100.0, 2000.0, 'jack seal breakaway friction'),
+    Fault('offset_a', 'A', 0.0, -1e-3, 1e-3, 'torque-motor current offset'),
+    Fault('radial_clearance_m', 'm', 2.5e-6, 1e-6, 6e-6, 'spool radial clearance'),
+    Fault('overlap_supply_m', 'm', 1e-6, -2e-6, 6e-6, 'spool overlap (supply = return)'),
+)
+FAULT_NAMES = tuple(f.name for f in FAULTS)
+_BY_NAME = {f.name: f for f in FAULTS}
+
+#: Dynamic friction over breakaway friction for the drawn cases (the parameters' nominal).
+FRICTION_RATIO = 0.5
+
+FAULT_SETTINGS = {
+    'n_train': 2400, 'n_val': 400, 'seed_train': 11, 'seed_val': 12, 'members': 4,
+    'hidden': [128, 64], 'warmup_steps': 1500, 'nll_steps': 2500, 'lr': 2e-3,
+    'weight_decay': 1e-4, 'degrade_probability': 0.3,
+}
+
+_EDGES = (50, 100, 150, 200, 250)
+_BIN = 10
+
+
+def preflight_features(a: dict) -> np.ndarray:
+    """Feature vector of one pre-flight record ``a`` (``command_a`` and the
+    :data:`eha_ros.physics.valve_test.PREFLIGHT_SIGNALS` arrays, one value per 1 ms tick)."""
+    n = a['command_a'].size
+    nb = n // _BIN
+    sig = [a['coil_current_a'] - a['command_a'], a['spool_position_m'],
+           a['flapper_position_m'], a['p12_pa'], a['jack_position_m'], a['jack_velocity_m_s']]
+    parts = [np.asarray(s[:nb * _BIN], dtype=float).reshape(nb, _BIN).mean(axis=1)
+             for s in sig]
+    for k in _EDGES:
+        parts.append(np.asarray(a['spool_position_m'][k:k + 5], dtype=float))
+        parts.append(np.asarray(a['flapper_position_m'][k:k + 5], dtype=float))
+    return np.concatenate(parts)
+
+
+def draw_wear(rng: np.random.Generator, sparse: bool, p_degrade: float = 0.3) -> dict:
+    """Plant parameters of one case: every fault uniform over its range, or (``sparse``) each
+    degraded with probability ``p_degrade`` and nominal otherwise."""
+    out = {}
+    for f in FAULTS:
+        u = rng.uniform(f.lo, f.hi)
+        flip = rng.uniform() < p_degrade
+        out[f.name] = float(u if (not sparse or flip) else f.nominal)
+    return out
+
+
+def apply_wear(params: PlantParams, wear: dict) -> PlantParams:
+    """``params`` with the faults of ``wear`` (names of :data:`FAULTS`; frictions set their
+    dynamic values at :data:`FRICTION_RATIO`, the overlap both edges)."""
+    w = dict(wear)
+    if 'overlap_supply_m' in w:
+        w['overlap_return_m'] = w['overlap_supply_m']
+    for part in ('spool', 'jack'):
+        key = f'{part}_static_friction_n'
+        if key in w:
+            w[f'{part}_dynamic_friction_n'] = FRICTION_RATIO * w[key]
+    return replace(params, **w)
+
+
+def _one_case(args):
+    from eha_ros.physics.valve_test import run_preflight
+    params, wear, seed = args
+    return preflight_features(run_preflight(apply_wear(params, wear), seed=seed))
+
+
+def cases(n: int, stream: int, p_degrade: float = 0.3):
+    """``n`` (wear, noise seed) cases of stream ``stream``: case ``i`` from its own generator
+    ``default_rng([stream, i])``, sparse for odd ``i``."""
+    out = []
+    for i in range(n):
+        rng = np.random.default_rng([stream, i])
+        wear = draw_wear(rng, sparse=bool(i % 2), p_degrade=p_degrade)
+        out.append((wear, int(rng.integers(0, 2 ** 31 - 1))))
+    return out
+
+
+def generate(case_list, params: PlantParams | None = None, workers: int = 2,
+             progress=None) -> tuple[np.ndarray, np.ndarray]:
+    """Features ``(n, 770)`` and targets ``(n, len(FAULTS))`` of the pre-flight check on the
+    high-fidelity plant for ``case_list`` (from :func:`cases`)."""
+    p = params if params is not None else default_params()
+    jobs = [(p, w, s) for w, s in case_list]
+    if workers > 1 and len(jobs) > 1:
+        import multiprocessing as mp
+        first = _one_case(jobs[0])  # compile here once, not in every worker
+        with mp.get_context('fork').Pool(workers) as pool:
+            feats = [first]
+            for k, f in enumerate(pool.imap(_one_case, jobs[1:], chunksize=8), start=1):
+                feats.append(f)
+                if progress and (k + 1) % 200 == 0:
+                    progress(f'{k + 1}/{len(jobs)} cases')
+    else:
+        feats = [_one_case(j) for j in jobs]
+    y = np.array([[w[name] for name in FAULT_NAMES] for w, _ in case_list])
+    return np.array(feats), y
+
+
+@dataclasses.dataclass
+class FaultEstimate:
+    """Estimates and standard deviations (SI, plant names) of one pre-flight check."""
+
+    values: dict
+    stds: dict
+
+
+@dataclasses.dataclass
+class FaultModel:
+    """A loaded ensemble: input standardisation, members' weights, calibration."""
+
+    in_mean: np.ndarray
+    in_std: np.ndarray
+    members: list           # each [(W, b), ...]
+    calibration: np.ndarray  # per output, >= 1
+    meta: dict
+
+    def predict_normalised(self, x):
+        """Ensemble mean and standard deviation (calibrated) of the outputs in units of each
+        range, for feature rows ``x`` ``(n, d)``."""
+        z = (np.atleast_2d(x) - self.in_mean) / self.in_std
+        mus, vars_ = [], []
+        k = len(FAULTS)
+        for weights in self.members:
+            h = z
+            for w, b in weights[:-1]:
+                h = np.tanh(h @ w + b)
+            w, b = weights[-1]
+            o = h @ w + b
+            mus.append(o[:, :k])
+            vars_.append(np.exp(np.clip(o[:, k:], -30, 10)))
+        mus = np.array(mus)
+        var = np.mean(vars_, axis=0) + np.var(mus, axis=0)
+        return mus.mean(axis=0), np.sqrt(var) * self.calibration
+
+    def estimate(self, record: dict) -> FaultEstimate:
+        """Estimate from one pre-flight record (see :func:`preflight_features`)."""
+        mu, sd = self.predict_normalised(preflight_features(record)[None, :])
+        vals, stds = {}, {}
+        for j, f in enumerate(FAULTS):
+            vals[f.name] = float(f.lo + mu[0, j] * f.span)
+            stds[f.name] = float(sd[0, j] * f.span)
+        return FaultEstimate(vals, stds)
+
+    def data(self) -> tuple:
+        flat = [np.concatenate([np.concatenate([w.ravel(), b]) for w, b in m])
+                for m in self.members]
+        return (self.in_mean, self.in_std, np.array(flat), self.calibration)
+
+
+def load_faults(path: Path | None = None) -> FaultModel:
+    """The shipped pre-flight network (:data:`FAULTS_FILE`)."""
+    path = Path(path) if path is not None else models_dir() / FAULTS_FILE
+    if not path.is_file():
+        raise SurrogateError(f'{path}: no pre-flight fault network (build it: python -m '
+                             'eha_ros.surrogates.faults)')
+    return _load_cached(str(path), path.stat().st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=4)
+def _load_cached(path: str, mtime_ns: int) -> FaultModel:
+    from .nn import split_weights
+    (in_mean, in_std, flat, cal), meta = load_artefact(Path(path))
+    if tuple(meta.get('outputs', ())) != FAULT_NAMES:
+        raise SurrogateError(f'{path}: outputs {meta.get("outputs")} are not {FAULT_NAMES}')
+    sizes = [in_mean.size] + list(meta['hidden']) + [2 * len(FAULTS)]
+    members = [split_weights(theta, sizes) for theta in flat]
+    return FaultModel(in_mean, in_std, members, cal, meta)
+
+
+def _train_member(x, y, xv, yv, hidden, seed, s):
+    import torch
+    torch.manual_seed(seed)
+    k = y.shape[1]
+    layers, d = [], x.shape[1]
+    for h in hidden:
+        layers += [torch.nn.Linear(d, h), torch.nn.Tanh()]
+        d = h
+    layers.append(torch.nn.Linear(d, 2 * k))
+    net = torch.nn.Sequential(*layers).double()
+    xt, yt = torch.as_tensor(x), torch.as_tensor(y)
+    opt = torch.optim.Adam(net.parameters(), lr=s['lr'], weight_decay=s['weight_decay'])
+    steps = s['warmup_steps'] + s['nll_steps']
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=s['lr'] * 0.02)
+    for step in range(steps):
+        opt.zero_grad()
+        o = net(xt)
+        mu, lv = o[:, :k], o[:, k:].clamp(-30, 10)
+        if step < s['warmup_steps']:
+            loss = ((mu - yt) ** 2).mean()
+        else:
+            loss = (0.5 * (lv + (mu - yt) ** 2 / lv.exp())).mean()
+        loss.backward()
+        opt.step()
+        sched.step()
+    out = []
+    for m in net:
+        if isinstance(m, torch.nn.Linear):
+            out.append((m.weight.detach().numpy().T.copy(), m.bias.detach().numpy().copy()))
+    return out
+
+
+def train_faults(x, y, xv, yv, settings: dict | None = None, threads: int = 2) -> FaultModel:
+    """Train the ensemble on ``(x, y)`` and calibrate its deviations on ``(xv, yv)``
+    (targets in SI, as :func:`generate` returns them)."""
+    import torch
+    torch.set_num_threads(threads)
+    s = dict(FAULT_SETTINGS, **(settings or {}))
+    lo = np.array([f.lo for f in FAULTS])
+    span = np.array([f.span for f in FAULTS])
+    in_mean = x.mean(axis=0)
+    in_std = np.maximum(x.std(axis=0), 1e-12 + 1e-9 * np.abs(in_mean))
+    z, zv = (x - in_mean) / in_std, (xv - in_mean) / in_std
+    u, uv = (y - lo) / span, (yv - lo) / span
+    members = [_train_member(z, u, zv, uv, s['hidden'], seed, s)
+               for seed in range(s['members'])]
+    model = FaultModel(in_mean, in_std, members, np.ones(len(FAULTS)), {})
+    mu, sd = model.predict_normalised(xv)
+    ratio = np.abs(mu - uv) / sd
+    model.calibration = np.maximum(1.0, np.quantile(ratio, 0.95, axis=0) / 2.0)
+    mu, sd = model.predict_normalised(xv)
+    model.meta = {'outputs': list(FAULT_NAMES), 'hidden': list(s['hidden']),
+                  'settings': s,
+                  'validation_mean_abs_error_pct': dict(zip(
+                      FAULT_NAMES, np.round(100 * np.mean(np.abs(mu - uv), axis=0), 3).tolist())),
+                  'validation_within_2sigma': dict(zip(
+                      FAULT_NAMES, np.round(np.mean(np.abs(mu - uv) <= 2 * sd, axis=0),
+                                            3).tolist())),
+                  'calibration': dict(zip(FAULT_NAMES, np.round(model.calibration,
+                                                                3).tolist())),
+                  'ranges': {f.name: [f.lo, f.hi] for f in FAULTS}}
+    return model
+
+
+def build_artefact(out: Path | None = None, settings: dict | None = None, workers: int = 2,
+                   progress=print) -> FaultModel:
+    """Generate the data, train, save ``models/faults.npz``."""
+    from .database import fluid_hash
+    s = dict(FAULT_SETTINGS, **(settings or {}))
+    p = default_params()
+    t0 = time.perf_counter()
+    x, y = generate(cases(s['n_train'], s['seed_train'], s['degrade_probability']), p,
+                    workers, progress)
+    xv, yv = generate(cases(s['n_val'], s['seed_val'], s['degrade_probability']), p,
+                      workers, progress)
+    t_data = time.perf_counter() - t0
+    model = train_faults(x, y, xv, yv, s, threads=workers)
+    model.meta['data_s'] = round(t_data, 1)
+    model.meta['train_s'] = round(time.perf_counter() - t0 - t_data, 1)
+    model.meta['fluid_hash'] = fluid_hash(p)
+    out = Path(out) if out is not None else models_dir() / FAULTS_FILE
+    save_artefact(out, model.data(), model.meta)
+    progress(f'{out}: validation error % of range '
+             f'{model.meta["validation_mean_abs_error_pct"]}, within 2 sigma '
+             f'{model.meta["validation_within_2sigma"]}')
+    return model
+
+
+if __name__ == '__main__':
+    build_artefact()

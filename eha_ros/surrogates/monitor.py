@@ -1,0 +1,319 @@
+"""The health monitor's logic without ROS: the same code runs live (``health_monitor``) and
+offline (``eha-diagnose``), so both give the same estimates from the same states, bit for bit.
+
+:class:`MonitorCore` takes the plant's states one by one (:meth:`MonitorCore.on_state`) and
+returns the estimates that fall due as :class:`Job` objects; running a job
+(:meth:`Job.run`) gives a :class:`HealthReport`.  A job holds copies of its inputs, so the
+node can run it on a worker thread while states keep arriving.
+
+Three kinds of estimate:
+
+* ``in-service``: every ``update_period_s`` of state time, the valve model fitted to the
+  (XS, Q, P12) samples of the last ``window_s`` (:class:`.health.InServiceEstimator`):
+  radial clearance and overlap;
+* ``valve-test``: each time a valve-test curve completes, the diagnostic network on the
+  curves so far (:class:`.health.ValveTestEstimator`): clearance and overlap;
+* ``preflight``: at the end of a pre-flight check, the fault network
+  (:mod:`.faults`) on its record: demagnetisation, filter clogging, spool and jack
+  friction, current offset (and its own reading of clearance and overlap, reported only
+  where no valve test has given them).
+
+Every report carries one :class:`Item` per monitored parameter, under the plant's parameter
+names (:data:`ITEMS`), with value, standard deviation, level and reason; parameters a
+report does not estimate keep the last estimate made (or none).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import deque
+
+import numpy as np
+
+from eha_ros.graph import LEVEL_NAMES, STATUS_DIVERGED, STATUS_PREFLIGHT, STATUS_VALVE_TEST
+from eha_ros.physics.params import ParameterError, PlantParams
+from eha_ros.physics.valve_test import MAP_POINTS, PREFLIGHT_SIGNALS
+
+from .health import (ERROR, OK, WARN, HealthEstimate, HealthThresholds, InServiceEstimator,
+                     ValveTestEstimator, classify, classify_fault)
+
+__all__ = ['ITEMS', 'ITEM_UNITS', 'Item', 'HealthReport', 'Job', 'MonitorCore',
+           'STATUS_DIVERGED', 'STATUS_VALVE_TEST', 'STATUS_PREFLIGHT', 'LEVEL_NAMES']
+
+
+#: Monitored parameters (plant names) and their units.
+ITEMS = ('radial_clearance_m', 'overlap_supply_m', 'demagnetisation', 'filter_clogging',
+         'spool_static_friction_n', 'jack_static_friction_n', 'offset_a')
+ITEM_UNITS = {'radial_clearance_m': 'm', 'overlap_supply_m': 'm', 'demagnetisation': '1',
+              'filter_clogging': '1', 'spool_static_friction_n': 'N',
+              'jack_static_friction_n': 'N', 'offset_a': 'A'}
+_WEAR = ('radial_clearance_m', 'overlap_supply_m')
+
+
+@dataclasses.dataclass
+class Item:
+    """Estimate of one monitored parameter."""
+
+    name: str
+    value: float
+    std: float
+    level: int
+    message: str
+    method: str
+    stamp_ns: int
+
+    def to_dict(self) -> dict:
+        return {'value': self.value, 'std': self.std, 'level': LEVEL_NAMES[self.level],
+                'message': self.message, 'method': self.method, 'stamp_ns': self.stamp_ns}
+
+
+@dataclasses.dataclass
+class HealthReport:
+    """One estimate: the HealthStatus content and the items it (re)estimated."""
+
+    stamp_ns: int
+    kind: str                  # in-service, valve-test, preflight
+    method: str
+    level: int
+    message: str
+    radial_clearance_m: float = 0.0
+    radial_clearance_std_m: float = 0.0
+    overlap_m: float = 0.0
+    overlap_std_m: float = 0.0
+    pressure_residual_pa: float = 0.0
+    samples_used: int = 0
+    items: dict = dataclasses.field(default_factory=dict)   # name -> Item
+
+    def to_dict(self) -> dict:
+        d = {k: getattr(self, k) for k in (
+            'stamp_ns', 'kind', 'method', 'radial_clearance_m', 'radial_clearance_std_m',
+            'overlap_m', 'overlap_std_m', 'pressure_residual_pa', 'samples_used', 'message')}
+        d['level'] = LEVEL_NAMES[self.level]
+        d['estimates'] = {k: v.to_dict() for k, v in self.items.items()}
+        return d
+
+
+def _wear_items(est: HealthEstimate, level: int, text: str, limits: HealthThresholds,
+                stamp_ns: int) -> dict:
+    """Clearance and overlap items of a wear estimate, each with its own level."""
+    out = {}
+    for name, v, s, warn, err, sign in (
+            ('radial_clearance_m', est.radial_clearance_m, est.radial_clearance_std_m,
+             limits.clearance_warn_m, limits.clearance_error_m, 1.0),
+            ('overlap_supply_m', est.overlap_m, est.overlap_std_m, limits.overlap_warn_m,
+             limits.overlap_error_m, -1.0)):
+        if level == OK:
+            lv, why = OK, text
+        elif est.beyond:
+            key = 'clearance' if sign > 0 else 'overlap'
+            pe = limits.evidence_probability
+            lv = (ERROR if est.beyond[f'{key}_error'] >= pe
+                  else WARN if est.beyond[f'{key}_warn'] >= pe else OK)
+            why = text if lv else f'{name} not shown beyond its limits; {text}'
+        else:
+            lv = (ERROR if sign * (v - err) >= 0 else WARN if sign * (v - warn) >= 0 else OK)
+            why = text
+        out[name] = Item(name, float(v), float(s), lv, why, est.method, stamp_ns)
+    return out
+
+
+class Job:
+    """One estimate due: its inputs (copies) and the code that makes it."""
+
+    def __init__(self, core: 'MonitorCore', kind: str, stamp_ns: int, data):
+        self.core, self.kind, self.stamp_ns, self.data = core, kind, stamp_ns, data
+
+    def run(self) -> HealthReport:
+        return self.core.make_report(self)
+
+
+class MonitorCore:
+    """State-by-state health logic (see the module docstring).
+
+    Parameters
+    ----------
+    params : PlantParams
+        Physics of the valve (nominal wear for the in-service evidence test).
+    limits : HealthThresholds
+    window_s, update_period_s, settle_s : float
+        In-service window, state time between estimates, state time ignored at start [s].
+    in_service : InServiceEstimator, optional
+    valve_test : ValveTestEstimator or None, optional
+        None: the diagnostic network is unavailable (``valve_test_error`` says why).
+    faults : FaultModel or None, optional
+    """
+
+    def __init__(self, params: PlantParams, limits: HealthThresholds, window_s: float = 1.0,
+                 update_period_s: float = 0.5, settle_s: float = 0.05, in_service=None,
+                 valve_test='default', faults='default'):
+        self.params = params
+        self.limits = limits
+        self.window_s = float(window_s)
+        self.update_s = float(update_period_s)
+        self.settle_s = float(settle_s)
+        self.in_service = (in_service if in_service is not None
+                           else InServiceEstimator(params, limits=limits))
+        self.valve_test_error = self.faults_error = ''
+        if valve_test == 'default':
+            try:
+                valve_test = ValveTestEstimator(params)
+            except (OSError, ValueError) as exc:  # SurrogateError is a ValueError too
+                valve_test, self.valve_test_error = None, ' '.join(str(exc).split())
+        self.valve_test = valve_test
+        if faults == 'default':
+            try:
+                from .faults import load_faults
+                faults = load_faults()
+            except (OSError, ValueError) as exc:
+                faults, self.faults_error = None, ' '.join(str(exc).split())
+        self.faults = faults
+        self.samples = deque()
+        self.next_ns = None
+        self.mode = None              # None (in service), 'valve-test', 'preflight'
+        self.curves, self.curves_done = {}, []
+        self.record = {}
+        self.scheduled = 0            # in-service estimates that fell due
+        self.items = {}               # name -> last Item
+        self.have_valve_test = False
+
+    # --- states ----------------------------------------------------------------------------
+    def on_state(self, t_ns: int, s) -> list:
+        """Take one state (an ``ActuatorState`` or any object with its fields); return the
+        jobs that fall due."""
+        status = int(s.status)
+        if status == STATUS_VALVE_TEST:
+            return self._on_valve_test(t_ns, s)
+        if status == STATUS_PREFLIGHT:
+            return self._on_preflight(t_ns, s)
+        if self.mode is not None:  # a test is over: the in-service window starts afresh
+            self.mode = None
+            self.next_ns = None
+            self.samples.clear()
+        if status == STATUS_DIVERGED or s.sim_time_s < self.settle_s:
+            return []
+        self.samples.append((t_ns, s.spool_position_m, s.load_flow_m3_s, s.p12_pa))
+        while self.samples and self.samples[0][0] < t_ns - self.window_s * 1e9:
+            self.samples.popleft()
+        if self.next_ns is None:
+            self.next_ns = t_ns + int(self.update_s * 1e9)
+        if t_ns < self.next_ns:
+            return []
+        self.next_ns = t_ns + int(self.update_s * 1e9)
+        self.scheduled += 1
+        arr = np.array([x[1:] for x in self.samples], dtype=float).reshape(-1, 3)
+        return [Job(self, 'in-service', t_ns, arr)]
+
+    def _on_valve_test(self, t_ns, s) -> list:
+        if self.mode != 'valve-test':
+            self.mode = 'valve-test'
+            self.curves, self.curves_done = {}, []
+            self.samples.clear()
+        if not s.valve_test_point_end:
+            return []
+        q = float(s.load_flow_m3_s)
+        curve = self.curves.setdefault(q, {})
+        curve[int(s.valve_test_point)] = (float(s.spool_position_m), float(s.p12_pa))
+        if int(s.valve_test_point) != MAP_POINTS - 1:
+            return []
+        if len(curve) < MAP_POINTS:
+            return [Job(self, 'valve-test-incomplete', t_ns, (q, len(curve)))]
+        pts = [curve[k] for k in sorted(curve)]
+        self.curves_done.append((q, np.array([x for x, _ in pts]),
+                                 np.array([p for _, p in pts])))
+        return [Job(self, 'valve-test', t_ns, list(self.curves_done))]
+
+    def _on_preflight(self, t_ns, s) -> list:
+        if self.mode != 'preflight':
+            self.mode = 'preflight'
+            self.record = {}
+            self.samples.clear()
+        k = int(s.valve_test_point)
+        self.record[k] = (float(s.coil_current_a), float(s.spool_position_m),
+                          float(s.flapper_position_m), float(s.p12_pa),
+                          float(s.jack_position_m), float(s.jack_velocity_m_s))
+        if not s.valve_test_point_end:
+            return []
+        n = k + 1
+        rec = dict(self.record)
+        self.record = {}
+        return [Job(self, 'preflight', t_ns, (n, rec))]
+
+    # --- estimates -------------------------------------------------------------------------
+    def make_report(self, job: Job) -> HealthReport:
+        """Run ``job``: the estimate, its level, and the items it updates."""
+        lim = self.limits
+        t = job.stamp_ns
+        if job.kind == 'valve-test-incomplete':
+            q, n = job.data
+            return HealthReport(t, 'valve-test', ValveTestEstimator.method, ERROR,
+                                f'no estimate: valve test curve at q = {q:g} m^3/s has {n} of '
+                                f'{MAP_POINTS} points (states lost)')
+        if job.kind == 'preflight':
+            return self._preflight_report(job)
+        try:
+            if job.kind == 'in-service':
+                a = job.data
+                est = self.in_service.estimate(a[:, 0], a[:, 1], a[:, 2])
+            elif self.valve_test is None:
+                raise ParameterError(f'the diagnostic network is not usable: '
+                                     f'{self.valve_test_error}')
+            else:
+                est = self.valve_test.estimate(job.data)
+        except ValueError as exc:
+            method = (self.in_service.method if job.kind == 'in-service'
+                      else ValveTestEstimator.method)
+            return HealthReport(t, job.kind, method, ERROR, f'no estimate: {exc}')
+        level, text = classify(est, lim)
+        items = _wear_items(est, level, text, lim, t)
+        if job.kind == 'valve-test':
+            self.have_valve_test = True
+        if job.kind == 'valve-test' or not self.have_valve_test:
+            self.items.update(items)
+        return HealthReport(t, job.kind, est.method, level, text, est.radial_clearance_m,
+                            est.radial_clearance_std_m, est.overlap_m, est.overlap_std_m,
+                            est.pressure_residual_pa, est.samples_used, items)
+
+    def _preflight_report(self, job: Job) -> HealthReport:
+        from .faults import FAULTS
+        t = job.stamp_ns
+        n, rec = job.data
+        method = 'preflight-network'
+        if self.faults is None:
+            return HealthReport(t, 'preflight', method, ERROR,
+                                f'no estimate: the pre-flight network is not usable: '
+                                f'{self.faults_error}')
+        from eha_ros.physics.valve_test import PREFLIGHT_S, preflight_command
+        expected = int(round(PREFLIGHT_S / 1e-3))
+        if n != expected or len(rec) != n:
+            return HealthReport(t, 'preflight', method, ERROR,
+                                f'no estimate: pre-flight check has {len(rec)} of {expected} '
+                                'ticks (states lost, or not at 1 kHz)')
+        arr = np.array([rec[k] for k in range(n)])
+        record = {name: arr[:, j] for j, name in enumerate(PREFLIGHT_SIGNALS)}
+        record['command_a'] = preflight_command(n, 1e-3, self.params.current_limit_a)
+        est = self.faults.estimate(record)
+        items = {}
+        for f in FAULTS:
+            if f.name in _WEAR:
+                continue
+            v, sd = est.values[f.name], est.stds[f.name]
+            lv, why = classify_fault(f.name, v, sd, self.limits)
+            items[f.name] = Item(f.name, v, sd, lv, why, method, t)
+        if not self.have_valve_test:  # its own reading of the wear, where no valve test did
+            wear = HealthEstimate(est.values['radial_clearance_m'],
+                                  est.stds['radial_clearance_m'],
+                                  est.values['overlap_supply_m'], est.stds['overlap_supply_m'],
+                                  0.0, n, method)
+            lv, why = classify(wear, self.limits)
+            items.update(_wear_items(wear, lv, why, self.limits, t))
+        self.items.update(items)
+        worst = max(items.values(), key=lambda i: i.level)
+        flagged = [i.name for i in items.values() if i.level > OK]
+        if flagged:
+            text = f'pre-flight check: {", ".join(flagged)} degraded; {worst.message}'
+        else:
+            text = 'pre-flight check: no degradation shown'
+        c, o = items.get('radial_clearance_m'), items.get('overlap_supply_m')
+        return HealthReport(t, 'preflight', method, worst.level, text,
+                            c.value if c else 0.0, c.std if c else 0.0,
+                            o.value if o else 0.0, o.std if o else 0.0, 0.0, n, items)

@@ -1,0 +1,123 @@
+"""Steady-state valve table for the in-service health fit.
+
+The in-service fit compares measured load pressure with the valve's steady state
+``P12(XS, Q; overlap, clearance)`` (:func:`eha_ros.physics.maps.steady_map`).  Solved per
+sample that costs about 0.1 ms, so a fit over a grid of wear values and a window of samples
+took seconds - longer than the monitor's update period.  This table holds the steady state
+once, at every node of a wear grid (overlap x clearance) over a grid of (XS, Q) covering
+in-service operation; a fit then interpolates bilinearly in (XS, Q) at each wear node
+(milliseconds).
+
+Axes
+    overlap -2..6 um every 0.5 um, radial clearance 1..6 um every 0.25 um (the swept wear
+    ranges, :data:`eha_ros.physics.maps.WEAR_RANGES`); spool position +-40 um (asinh-spaced,
+    dense near null where the pressure gain is steep); load flow +-15 cm^3/s (sinh-spaced).
+    In service on the reference's scenarios the spool stays within +-23 um and the flow within
+    +-10 cm^3/s; samples outside the table are not used.
+
+Build: ``python -m eha_ros.surrogates.steady_table`` (about 2 min on 2 cores) writes
+``models/steady_table.npz`` with the hash of the fluid parameters it was built for.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from eha_ros.physics import PlantParams, default_params
+from eha_ros.physics.maps import WEAR_RANGES
+
+__all__ = ['SteadyTable', 'build_steady_table', 'load_steady_table', 'TABLE_FILE']
+
+TABLE_FILE = 'steady_table.npz'
+
+#: Grid steps of the wear axes [m].
+OVERLAP_STEP_M = 0.5e-6
+CLEARANCE_STEP_M = 0.25e-6
+XS_MAX_M, XS_SCALE_M, N_XS = 4e-5, 2e-6, 81
+Q_MAX_M3_S, Q_SCALE_M3_S, N_Q = 1.5e-5, 1e-6, 41
+
+
+def _axis(vmax, scale, n):
+    u = np.linspace(-np.arcsinh(vmax / scale), np.arcsinh(vmax / scale), n)
+    return scale * np.sinh(u)
+
+
+class SteadyTable:
+    """P12 [Pa] at every (overlap, clearance, XS, Q) node; :meth:`p12_at_nodes` interpolates
+    in (XS, Q) at every wear node at once."""
+
+    def __init__(self, overlap_m, clearance_m, xs_m, q_m3_s, p12_pa, meta=None):
+        self.overlap_m = np.asarray(overlap_m, dtype=float)
+        self.clearance_m = np.asarray(clearance_m, dtype=float)
+        self.xs_m = np.asarray(xs_m, dtype=float)
+        self.q_m3_s = np.asarray(q_m3_s, dtype=float)
+        self.p12_pa = np.asarray(p12_pa, dtype=float)   # (n_lap, n_clr, n_xs, n_q)
+        self.meta = meta or {}
+
+    def inside(self, xs, q):
+        """Samples inside the (XS, Q) table."""
+        return ((xs >= self.xs_m[0]) & (xs <= self.xs_m[-1]) & (q >= self.q_m3_s[0])
+                & (q <= self.q_m3_s[-1]))
+
+    def p12_at_nodes(self, xs, q):
+        """``(n_lap, n_clr, n)`` model P12 [Pa] of the samples ``(xs, q)`` (inside the table)
+        at every wear node: bilinear in (XS, Q)."""
+        xs = np.asarray(xs, dtype=float)
+        q = np.asarray(q, dtype=float)
+        i = np.clip(np.searchsorted(self.xs_m, xs) - 1, 0, self.xs_m.size - 2)
+        j = np.clip(np.searchsorted(self.q_m3_s, q) - 1, 0, self.q_m3_s.size - 2)
+        u = (xs - self.xs_m[i]) / (self.xs_m[i + 1] - self.xs_m[i])
+        v = (q - self.q_m3_s[j]) / (self.q_m3_s[j + 1] - self.q_m3_s[j])
+        t = self.p12_pa
+        return ((1 - u) * (1 - v) * t[:, :, i, j] + u * (1 - v) * t[:, :, i + 1, j]
+                + (1 - u) * v * t[:, :, i, j + 1] + u * v * t[:, :, i + 1, j + 1])
+
+
+def build_steady_table(params: PlantParams | None = None, progress=print) -> SteadyTable:
+    """Solve the steady state at every node (numba, all cores)."""
+    from eha_ros.physics.maps import steady_map
+    p = params if params is not None else default_params()
+    (l0, l1), (c0, c1) = WEAR_RANGES['overlap_m'], WEAR_RANGES['radial_clearance_m']
+    laps = np.round(np.arange(l0, l1 + 1e-12, OVERLAP_STEP_M), 12)
+    clrs = np.round(np.arange(c0, c1 + 1e-12, CLEARANCE_STEP_M), 12)
+    xs = _axis(XS_MAX_M, XS_SCALE_M, N_XS)
+    q = _axis(Q_MAX_M3_S, Q_SCALE_M3_S, N_Q)
+    xg, qg = np.meshgrid(xs, q, indexing='ij')
+    out = np.empty((laps.size, clrs.size, xs.size, q.size))
+    t0 = time.perf_counter()
+    for a, lap in enumerate(laps):
+        for b, clr in enumerate(clrs):
+            out[a, b] = steady_map(xg, qg, lap, clr, params=p)['p12_pa']
+        progress(f'overlap {lap * 1e6:5.2f} um done ({time.perf_counter() - t0:.0f} s)')
+    return SteadyTable(laps, clrs, xs, q, out)
+
+
+def load_steady_table(params: PlantParams | None = None) -> SteadyTable:
+    """The shipped table, checked against the fluid parameters of ``params``."""
+    from .base import SurrogateError, load_artefact, models_dir
+    from .database import fluid_hash
+    p = params if params is not None else default_params()
+    path = models_dir() / TABLE_FILE
+    data, meta = load_artefact(path)
+    if meta.get('fluid_hash') != fluid_hash(p):
+        raise SurrogateError(f'{path}: built for other fluid parameters than these: rebuild '
+                             'it (python -m eha_ros.surrogates.steady_table)')
+    return SteadyTable(*data[:5], meta=meta)
+
+
+def main():
+    from .base import models_dir, save_artefact
+    from .database import fluid_hash
+    p = default_params()
+    t0 = time.perf_counter()
+    t = build_steady_table(p)
+    save_artefact(models_dir() / TABLE_FILE, (t.overlap_m, t.clearance_m, t.xs_m, t.q_m3_s,
+                                               t.p12_pa.astype(np.float32)),
+        {'kind': 'steady_table', 'fluid_hash': fluid_hash(p),
+         'build_s': round(time.perf_counter() - t0, 1)})
+
+
+if __name__ == '__main__':
+    main()
