@@ -1,14 +1,32 @@
-"""Wear estimation accuracy: in-service fit over the reference's scenarios and the diagnostic
-valve test, for a nominal and three worn valves.
+"""Health monitoring figures: valve test, pre-flight faults, in-service coverage, realtime.
 
-Prints one JSON object.  ``in_service``: for each valve and scenario (physics-only closed loop,
-1 kHz controller, samples at 1 kHz after 50 ms) the steady-fit estimate, its error [um], the
-nominal valve's residual over the best fit's (``ratio``) and the level it gets.  ``valve_test``:
-the diagnostic network on the three curves of the ``valve_test`` scenario.  ``summary``: false
-alarms (a nominal valve graded WARN/ERROR), missed detections (a worn valve graded OK), the
-error where a level was raised, and the ratio ranges.
+Prints one JSON object:
 
-    python bench/health.py [--scenarios a,b]
+``valve_test``
+    The diagnostic network on the valve test's three curves (transient maps of the
+    high-fidelity valve) at 4 named and 12 random valves (seeded, interior of the wear ranges):
+    error in % of each range, clean and with 1 % relative noise (3 noise seeds), and how
+    often the truth lies within the stated 2 sigma.
+``preflight``
+    The pre-flight network on the high-fidelity plant's pre-flight check at cases drawn from
+    streams used neither for training nor validation: ``combinations`` (2-3 simultaneous
+    faults among the five, the rest nominal, clearance and overlap random): per fault the mean
+    error in % of its range and the fraction within 2 sigma; ``single`` (one fault between its
+    error limit and the end of its range): isolation (the most degraded item - largest
+    estimate over its warn limit, in units of the warn distance from nominal - is the injected
+    one) and the confusion table injected -> flagged (items graded WARN/ERROR; ``none``);
+    ``nominal`` (20 noise seeds): false alarms.
+``in_service``
+    4 valves x the reference's 9 scenarios x 3 noise seeds (physics-only closed loop, 1 kHz
+    controller, the monitor's last 1 s window): how often both wear parameters lie within
+    2 sigma, false alarms on the nominal valve, detections on the worn ones, and how many
+    estimates were labelled separable while their error exceeded 2 sigma.
+``realtime`` (``--realtime-s S``, default 20; 0 skips)
+    The graph in realtime at 1 kHz, every node its own process, health monitor on: in-service
+    estimates published against those scheduled (one every ``update_period_s`` of received
+    state time).
+
+    python bench/health.py [--realtime-s 20] [--quick]
 """
 
 import argparse
@@ -17,74 +35,216 @@ import time
 
 import numpy as np
 
-from eha_ros.graph import LEVEL_NAMES as LEVELS, REFERENCE_SCENARIOS as SCENARIOS
+from eha_ros.graph import LEVEL_NAMES, REFERENCE_SCENARIOS as SCENARIOS
 from eha_ros.physics import default_params, get_scenario, simulate
-from eha_ros.physics.maps import spool_grid, transient_map
+from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
 from eha_ros.physics.params import replace
+from eha_ros.physics.valve_test import run_preflight
+from eha_ros.surrogates.diagnostics import add_noise
+from eha_ros.surrogates.faults import FAULTS, apply_wear, load_faults
 from eha_ros.surrogates.health import (HealthThresholds, InServiceEstimator, ValveTestEstimator,
-                                       classify)
+                                       classify, classify_fault)
 
 VALVES = {'nominal': (2.5e-6, 1e-6), 'clearance_4p5': (4.5e-6, 1e-6),
           'underlap_1': (2.5e-6, -1e-6), 'worn': (4.5e-6, -0.5e-6)}
+FIVE = FAULTS[:5]
+#: Streams of the benchmark's cases (training used 11, validation 12).
+STREAM_COMBOS, STREAM_SINGLE, STREAM_NOMINAL, STREAM_VALVES = 101, 102, 103, 104
+
+
+def bench_valve_test(p0, quick):
+    net = ValveTestEstimator(p0)
+    flows = get_scenario('valve_test').valve_test_flows_m3_s
+    xs = spool_grid(133, p0.spool_stroke_m)
+    (l0, l1), (c0, c1) = WEAR_RANGES['overlap_m'], WEAR_RANGES['radial_clearance_m']
+    rng = np.random.default_rng(STREAM_VALVES)
+    valves = list(VALVES.values()) + [
+        (rng.uniform(c0 + 0.05 * (c1 - c0), c1 - 0.05 * (c1 - c0)),
+         rng.uniform(l0 + 0.05 * (l1 - l0), l1 - 0.05 * (l1 - l0)))
+        for _ in range(4 if quick else 12)]
+    rows = {'clean': [], 'noise_1pct': []}
+    for clr, lap in valves:
+        p = replace(p0, radial_clearance_m=clr, overlap_supply_m=lap, overlap_return_m=lap)
+        curves = [(q, xs, transient_map(xs, q, params=p)['p12_pa']) for q in flows]
+        cases = [('clean', curves)] + [
+            ('noise_1pct', [(q, x, add_noise(c[None, :], 0.01, np.random.default_rng(s))[0])
+                            for q, x, c in curves]) for s in range(3)]
+        for label, cv in cases:
+            e = net.estimate(cv)
+            rows[label].append((100 * abs(e.radial_clearance_m - clr) / (c1 - c0),
+                                100 * abs(e.overlap_m - lap) / (l1 - l0),
+                                abs(e.radial_clearance_m - clr) <= 2 * e.radial_clearance_std_m
+                                and abs(e.overlap_m - lap) <= 2 * e.overlap_std_m))
+    out = {'valves': len(valves)}
+    for label, r in rows.items():
+        a = np.array(r, dtype=float)
+        out[label] = {'clearance_max_error_pct': round(a[:, 0].max(), 3),
+                      'clearance_mean_error_pct': round(a[:, 0].mean(), 3),
+                      'overlap_max_error_pct': round(a[:, 1].max(), 3),
+                      'overlap_mean_error_pct': round(a[:, 1].mean(), 3),
+                      'within_2sigma': round(a[:, 2].mean(), 3), 'cases': len(r)}
+    return out
+
+
+def _severity(name, value, lim):
+    """Estimate over its warn limit, in units of the warn distance from nominal."""
+    f = next(f for f in FAULTS if f.name == name)
+    fl = lim.fault(name)
+    if fl.absolute:
+        return abs(value) / fl.warn
+    return (value - f.nominal) / (fl.warn - f.nominal)
+
+
+def bench_preflight(p0, lim, quick):
+    model = load_faults()
+    nominal = {f.name: f.nominal for f in FAULTS}
+    out = {}
+    # 2-3 simultaneous faults
+    rng = np.random.default_rng(STREAM_COMBOS)
+    errs, inside = [], []
+    for i in range(20 if quick else 80):
+        wear = dict(nominal)
+        (l0, l1), (c0, c1) = WEAR_RANGES['overlap_m'], WEAR_RANGES['radial_clearance_m']
+        wear['radial_clearance_m'] = float(rng.uniform(c0, c1))
+        wear['overlap_supply_m'] = float(rng.uniform(l0, l1))
+        for j in rng.choice(5, size=2 + i % 2, replace=False):
+            f = FIVE[j]
+            wear[f.name] = float(rng.uniform(f.lo, f.hi))
+        est = model.estimate(run_preflight(apply_wear(p0, wear), seed=int(rng.integers(1e9))))
+        errs.append([abs(est.values[f.name] - wear[f.name]) / f.span for f in FIVE])
+        inside.append([abs(est.values[f.name] - wear[f.name]) <= 2 * est.stds[f.name]
+                       for f in FIVE])
+    errs, inside = np.array(errs), np.array(inside)
+    out['combinations'] = {
+        'cases': len(errs),
+        'mean_error_pct_of_range': {f.name: round(100 * errs[:, j].mean(), 2)
+                                    for j, f in enumerate(FIVE)},
+        'p95_error_pct_of_range': {f.name: round(100 * np.quantile(errs[:, j], 0.95), 2)
+                                   for j, f in enumerate(FIVE)},
+        'within_2sigma': {f.name: round(inside[:, j].mean(), 3) for j, f in enumerate(FIVE)}}
+    # single faults: isolation and confusion
+    rng = np.random.default_rng(STREAM_SINGLE)
+    confusion = {f.name: {} for f in FIVE}
+    correct, n = 0, 0
+    for rep in range(3 if quick else 8):
+        for f in FIVE:
+            fl = lim.fault(f.name)
+            wear = dict(nominal)
+            lo = fl.error
+            if fl.absolute:
+                wear[f.name] = float(rng.choice([-1, 1]) * rng.uniform(lo, f.hi))
+            else:
+                wear[f.name] = float(rng.uniform(lo, f.hi))
+            est = model.estimate(run_preflight(apply_wear(p0, wear),
+                                               seed=int(rng.integers(1e9))))
+            sev = {g.name: _severity(g.name, est.values[g.name], lim) for g in FIVE}
+            named = max(sev, key=sev.get)
+            correct += named == f.name
+            n += 1
+            flagged = [g.name for g in FIVE if classify_fault(
+                g.name, est.values[g.name], est.stds[g.name], lim)[0] > 0] or ['none']
+            for g in flagged:
+                confusion[f.name][g] = confusion[f.name].get(g, 0) + 1
+    out['single'] = {'cases': n, 'isolation': round(correct / n, 3),
+                     'confusion_injected_to_flagged': confusion}
+    # nominal seeds: false alarms
+    rng = np.random.default_rng(STREAM_NOMINAL)
+    alarms = []
+    n_nom = 20
+    for k in range(n_nom):
+        est = model.estimate(run_preflight(p0, seed=int(rng.integers(1e9))))
+        flagged = [g.name for g in FIVE if classify_fault(
+            g.name, est.values[g.name], est.stds[g.name], lim)[0] > 0]
+        if flagged:
+            alarms.append(flagged)
+    out['nominal'] = {'runs': n_nom, 'false_alarms': len(alarms), 'flagged': alarms}
+    out['validation'] = {k: model.meta.get(k) for k in (
+        'validation_mean_abs_error_pct', 'validation_within_2sigma', 'calibration')}
+    return out
+
+
+def bench_in_service(p0, lim, quick):
+    est = InServiceEstimator(p0, limits=lim)
+    rows = []
+    seeds = (1,) if quick else (1, 2, 3)
+    for valve, (clr, lap) in VALVES.items():
+        p = replace(p0, radial_clearance_m=clr, overlap_supply_m=lap, overlap_return_m=lap)
+        for sc in SCENARIOS:
+            for seed in seeds:
+                r = simulate(p, sc, controller_period_s=1e-3, record_dt_s=1e-3, seed=seed)
+                t = r['time_s']
+                k = (t >= 0.05) & (t >= t.max() - 1.0)
+                e = est.estimate(r['spool_position_m'][k], r['load_flow_m3_s'][k],
+                                 r['p12_pa'][k])
+                level, text = classify(e, lim)
+                covered = (abs(e.radial_clearance_m - clr) <= 2 * e.radial_clearance_std_m
+                           and abs(e.overlap_m - lap) <= 2 * e.overlap_std_m)
+                rows.append({'valve': valve, 'scenario': sc, 'seed': seed,
+                             'clearance_um': round(e.radial_clearance_m * 1e6, 3),
+                             'clearance_std_um': round(e.radial_clearance_std_m * 1e6, 3),
+                             'overlap_um': round(e.overlap_m * 1e6, 3),
+                             'overlap_std_um': round(e.overlap_std_m * 1e6, 3),
+                             'correlation': round(e.correlation, 3), 'covered': covered,
+                             'separable': 'not separable' not in text,
+                             'level': LEVEL_NAMES[level]})
+    nominal = [r for r in rows if r['valve'] == 'nominal']
+    worn = [r for r in rows if r['valve'] != 'nominal']
+    return {'runs': len(rows),
+            'coverage_2sigma': round(np.mean([r['covered'] for r in rows]), 3),
+            'coverage_2sigma_nominal': round(np.mean([r['covered'] for r in nominal]), 3),
+            'coverage_2sigma_worn': round(np.mean([r['covered'] for r in worn]), 3),
+            'false_alarms_nominal': sum(r['level'] != 'OK' for r in nominal),
+            'nominal_runs': len(nominal),
+            'worn_detected': sum(r['level'] != 'OK' for r in worn), 'worn_runs': len(worn),
+            'labelled_separable_but_not_covered': sum(r['separable'] and not r['covered']
+                                                      for r in rows),
+            'labelled_not_separable': sum(not r['separable'] for r in rows),
+            'rows': rows}
+
+
+def bench_realtime(seconds):
+    from types import SimpleNamespace
+
+    from eha_ros.harness import GraphConfig, run_graph
+    from eha_ros.physics import load_params
+    from eha_ros.surrogates.monitor import MonitorCore
+    from eha_ros.isolation import ros_environment
+    with ros_environment() as env:
+        r = run_graph(GraphConfig(scenario='sine_0p1_5pi', model='hf', mode='realtime',
+                                  duration_s=float(seconds), health=True),
+                      processes=True, env=env, timeout_s=120)
+    # the schedule the monitor followed on the states it received: one estimate per
+    # update_period_s of state time (MonitorCore without running the fits)
+    core = MonitorCore(load_params(), HealthThresholds.load(), valve_test=None, faults=None)
+    st = r.state
+    s = SimpleNamespace(valve_test_point=0, valve_test_point_end=False)
+    due = 0
+    for k in range(st['stamp_ns'].size):
+        s.status, s.sim_time_s = int(st['status'][k]), float(st['sim_time_s'][k])
+        s.spool_position_m, s.load_flow_m3_s = st['spool_position_m'][k], st['load_flow_m3_s'][k]
+        s.p12_pa = st['p12_pa'][k]
+        due += len(core.on_state(int(st['stamp_ns'][k]), s))
+    made = sum(1 for h in r.health if h.method == 'steady-fit')
+    return {'seconds': seconds, 'states_received': int(st['stamp_ns'].size),
+            'estimates_scheduled': due, 'estimates_made': made,
+            'fraction_made': round(made / max(due, 1), 3), 'wall_s': round(r.wall_s, 1)}
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument('--scenarios', default=','.join(SCENARIOS))
+    ap.add_argument('--realtime-s', type=float, default=20.0)
+    ap.add_argument('--quick', action='store_true', help='fewer cases (a smoke run)')
     args = ap.parse_args()
     p0 = default_params()
     lim = HealthThresholds.load()
-    est = InServiceEstimator(p0, max_samples=400)
-    net = ValveTestEstimator(p0)
-    flows = get_scenario('valve_test').valve_test_flows_m3_s
-    xs = spool_grid(133, p0.spool_stroke_m)
-    out = {'benchmark': 'health', 'anomaly_ratio': lim.anomaly_ratio,
-           'model_bias_pa': lim.model_bias_pa, 'in_service': {},
-           'valve_test': {}}
     t0 = time.perf_counter()
-    for valve, (clr, lap) in VALVES.items():
-        p = replace(p0, radial_clearance_m=clr, overlap_supply_m=lap, overlap_return_m=lap)
-        rows = {}
-        for sc in args.scenarios.split(','):
-            r = simulate(p, sc, controller_period_s=1e-3, record_dt_s=1e-3)
-            k = r['time_s'] >= 0.05
-            e = est.estimate(r['spool_position_m'][k], r['load_flow_m3_s'][k], r['p12_pa'][k])
-            level, _ = classify(e, lim)
-            rows[sc] = {'clearance_um': round(e.radial_clearance_m * 1e6, 3),
-                        'overlap_um': round(e.overlap_m * 1e6, 3),
-                        'clearance_error_um': round((e.radial_clearance_m - clr) * 1e6, 3),
-                        'overlap_error_um': round((e.overlap_m - lap) * 1e6, 3),
-                        'residual_kpa': round(e.pressure_residual_pa / 1e3, 1),
-                        'nominal_residual_kpa': round(e.nominal_residual_pa / 1e3, 1),
-                        'ratio': round(e.nominal_residual_pa / max(e.pressure_residual_pa,
-                                                                   lim.model_bias_pa), 2),
-                        'level': LEVELS[level]}
-        out['in_service'][valve] = rows
-        curves = [(q, xs, transient_map(xs, q, params=p)['p12_pa']) for q in flows]
-        e = net.estimate(curves)
-        out['valve_test'][valve] = {
-            'clearance_error_um': round((e.radial_clearance_m - clr) * 1e6, 4),
-            'overlap_error_um': round((e.overlap_m - lap) * 1e6, 4),
-            'residual_kpa': round(e.pressure_residual_pa / 1e3, 2),
-            'level': LEVELS[classify(e, lim)[0]]}
-    rows = [(v, sc, r) for v, d in out['in_service'].items() for sc, r in d.items()]
-    raised = [r for v, sc, r in rows if r['level'] != 'OK']
-    out['summary'] = {
-        'runs': len(rows),
-        'false_alarms': sum(1 for v, sc, r in rows if v == 'nominal' and r['level'] != 'OK'),
-        'missed_detections': sum(1 for v, sc, r in rows if v != 'nominal' and r['level'] == 'OK'),
-        'worn_runs': sum(1 for v, sc, r in rows if v != 'nominal'),
-        'nominal_ratio_range': [min(r['ratio'] for v, sc, r in rows if v == 'nominal'),
-                                max(r['ratio'] for v, sc, r in rows if v == 'nominal')],
-        'worn_ratio_range': [min(r['ratio'] for v, sc, r in rows if v != 'nominal'),
-                             max(r['ratio'] for v, sc, r in rows if v != 'nominal')],
-        'max_abs_error_um_where_raised': max(
-            (max(abs(r['clearance_error_um']), abs(r['overlap_error_um'])) for r in raised),
-            default=None),
-        'valve_test_max_abs_error_um': max(max(abs(r['clearance_error_um']),
-                                               abs(r['overlap_error_um']))
-                                           for r in out['valve_test'].values()),
-        'wall_s': round(time.perf_counter() - t0, 1)}
+    out = {'benchmark': 'health'}
+    out['valve_test'] = bench_valve_test(p0, args.quick)
+    out['preflight'] = bench_preflight(p0, lim, args.quick)
+    out['in_service'] = bench_in_service(p0, lim, args.quick)
+    if args.realtime_s > 0:
+        out['realtime'] = bench_realtime(args.realtime_s)
+    out['wall_s'] = round(time.perf_counter() - t0, 1)
     print(json.dumps(out))
 
 

@@ -133,3 +133,123 @@ def test_graph_runs_the_valve_test_and_the_monitor_reads_the_wear(eha_graph, pro
         assert d['method'] == 'diagnostic-network' and d['samples_used'] == MAP_POINTS
         assert d['radial_clearance_m'] == h.radial_clearance_m
         assert d['overlap_m'] == h.overlap_m and d['level'] == 'WARN'
+
+
+# --- pre-flight check -------------------------------------------------------------------------
+
+from eha_ros.physics.valve_test import (PREFLIGHT_PROFILE, PREFLIGHT_S,  # noqa: E402
+                                        PreflightCheck, preflight_command, run_preflight)
+
+
+def test_preflight_schedule_follows_its_profile():
+    """1.2 s at 1 kHz: 1200 ticks; the command at each tick is the profile's closed form
+    (steps of +-30 % and +-10 % rated, sines of 20 % at 0.3 s and 5 % at 0.25 s)."""
+    pc = PreflightCheck(1_000_000, P.current_limit_a)
+    assert pc.n_ticks == 1200 and pc.duration_s == pytest.approx(PREFLIGHT_S)
+    i = pc.command_a / P.current_limit_a
+    assert i[0] == 0.0 and i[49] == 0.0 and i[50] == 0.3 and i[99] == 0.3 and i[100] == -0.3
+    assert i[150] == 0.1 and i[200] == -0.1 and i[250] == 0.0
+    k = np.arange(300, 900)
+    np.testing.assert_allclose(i[k], 0.2 * np.sin(2 * np.pi * (k * 1e-3 - 0.3) / 0.3),
+                               atol=1e-12)
+    assert np.max(np.abs(i)) <= 0.3 and PREFLIGHT_PROFILE[-1][1] == PREFLIGHT_S
+    with pytest.raises(ParameterError, match='whole numbers of ticks'):
+        PreflightCheck(7_000_000, P.current_limit_a)
+    assert_array_equal(preflight_command(1200, 1e-3, P.current_limit_a), pc.command_a)
+
+
+def test_preflight_record_shows_offset_and_demagnetisation():
+    """Closed forms the network builds on: the reported coil current is the command plus the
+    offset (and the play +-His, the noise of 2 uA): in the 0 A holds its mean is the offset
+    within 0.1 uA + His; the spool's steady position per current falls as (1 - KGM), within
+    1 %."""
+    a = run_preflight(replace(P, offset_a=4e-4), seed=3)
+    quiet = np.r_[10:50, 1160:1200]
+    assert abs(np.mean(a['coil_current_a'][quiet] - a['command_a'][quiet]) - 4e-4) < (
+        P.hysteresis_a + 1e-7)
+    nominal = run_preflight(P, seed=3)
+    demag = run_preflight(replace(P, demagnetisation=0.3), seed=3)
+    hold = np.r_[80:100]
+    ratio = np.mean(demag['spool_position_m'][hold]) / np.mean(nominal['spool_position_m'][hold])
+    assert ratio == pytest.approx(0.7, rel=0.01)
+    # the jack is free: it moves during the steps
+    assert np.ptp(nominal['jack_position_m']) > 1e-4
+
+
+def test_preflight_network_reads_held_out_faults():
+    """The shipped pre-flight network on four wear points drawn from a stream used neither for
+    training nor validation (2 and 3 simultaneous faults): every fault within 10 % of its
+    range and within 3 of its stated standard deviations."""
+    from eha_ros.surrogates.faults import FAULTS, apply_wear, load_faults
+    model = load_faults()
+    rng = np.random.default_rng(20261130)
+    names = [f.name for f in FAULTS[:5]]
+    for case in range(4):
+        wear = {f.name: f.nominal for f in FAULTS}
+        for name in rng.choice(names, size=2 + case % 2, replace=False):
+            f = next(f for f in FAULTS if f.name == name)
+            wear[name] = float(rng.uniform(f.lo, f.hi))
+        est = model.estimate(run_preflight(apply_wear(P, wear), seed=int(rng.integers(1e6))))
+        for f in FAULTS[:5]:
+            err = est.values[f.name] - wear[f.name]
+            assert abs(err) <= 0.10 * f.span, (case, f.name, wear[f.name], est.values[f.name])
+            assert abs(err) <= 3 * est.stds[f.name], (case, f.name, err, est.stds[f.name])
+
+
+def test_graph_runs_the_preflight_check_live_equals_offline(eha_graph, tmp_path):
+    """Lockstep pre-flight check on a valve with a demagnetised motor and a current offset,
+    health monitor and recorder on: the plant's pre-flight states equal the plant-only
+    record bit for bit; the monitor publishes every parameter under its plant name with a
+    standard deviation and a level; /diagnostics holds one status per parameter with the
+    hardware id; eha-diagnose replays the recording to the same messages bit for bit and
+    prints the estimates as JSON."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from eha_ros.recording.mcap_io import McapReader
+    from eha_ros.surrogates.monitor import ITEMS
+    wear = {'demagnetisation': 0.3, 'offset_a': 5e-4}
+    path = tmp_path / 'preflight.mcap'
+    r = eha_graph(processes=False, scenario='preflight_check', plant=wear, health=True,
+                  record=str(path))
+    st = r.state
+    pf = st['status'] == 5
+    assert pf.sum() == 1200 and np.all(pf[1:1201])
+    ref = run_preflight(replace(P, **wear), seed=0)
+    for name in ('spool_position_m', 'p12_pa', 'coil_current_a', 'jack_position_m'):
+        assert_array_equal(st[name][pf], ref[name])
+    h = [m for m in r.health if m.method == 'preflight-network']
+    assert len(h) == 1
+    h = h[0]
+    assert list(h.parameter_names) == list(ITEMS)
+    v = dict(zip(h.parameter_names, h.parameter_values))
+    s = dict(zip(h.parameter_names, h.parameter_stds))
+    assert abs(v['demagnetisation'] - 0.3) <= max(2 * s['demagnetisation'], 0.025)
+    assert abs(v['offset_a'] - 5e-4) <= max(2 * s['offset_a'], 1e-4)
+    lv = dict(zip(h.parameter_names, h.parameter_levels))
+    assert lv['demagnetisation'] >= 1 and lv['offset_a'] >= 1 and h.level >= 1
+    diags = [m.message for m in McapReader(str(path), topics=['/diagnostics'])]
+    last = [d for d in diags if any(s.name.endswith('demagnetisation') and s.values
+                                    for s in d.status)][-1]
+    names = {s.name for s in last.status}
+    assert {f'health_monitor: {n}' for n in ITEMS} <= names
+    assert all(s.hardware_id == 'eha/servovalve' for s in last.status)
+    demag = next(s for s in last.status if s.name == 'health_monitor: demagnetisation')
+    assert demag.level >= 1 and {kv.key for kv in demag.values} >= {'value', 'std', 'unit'}
+    out = subprocess.run([str(Path(sys.executable).parent / 'eha-diagnose'), str(path),
+                          '--json'], capture_output=True, text=True, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    d = json.loads(out.stdout)
+    assert d['live_agrees'] is True and d['live_messages'] == len(r.health)
+    for name in ('demagnetisation', 'filter_clogging', 'spool_static_friction_n',
+                 'jack_static_friction_n', 'offset_a'):
+        e = d['estimates'][name]
+        assert e['value'] == v[name] and e['std'] == s[name] and e['level'] in (
+            'OK', 'WARN', 'ERROR')
+    # a recording without the test segment asked for it: one line, exit 2
+    out = subprocess.run([str(Path(sys.executable).parent / 'eha-diagnose'), str(path),
+                          '--method', 'network'], capture_output=True, text=True, cwd=tmp_path)
+    assert out.returncode == 2 and out.stderr.count('\n') == 1
+    assert 'no valve-test segment' in out.stderr

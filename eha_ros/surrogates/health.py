@@ -412,9 +412,16 @@ def classify(est: HealthEstimate, limits: HealthThresholds) -> tuple[int, str]:
     c_um, o_um = est.radial_clearance_m * 1e6, est.overlap_m * 1e6
     sc, so = est.radial_clearance_std_m * 1e6, est.overlap_std_m * 1e6
     fit = f'clearance {c_um:.2f} +- {sc:.2f} um, overlap {o_um:.2f} +- {so:.2f} um'
-    if np.isfinite(est.correlation) and abs(est.correlation) >= limits.separable_correlation:
-        fit += (f' (not separable from this motion: correlation {est.correlation:+.2f}, '
-                'they trade off)')
+    if np.isfinite(est.correlation):
+        (l0, l1), (c0, c1) = WEAR_RANGES['overlap_m'], WEAR_RANGES['radial_clearance_m']
+        vague = (est.radial_clearance_std_m > 0.5 * (c1 - c0) / np.sqrt(12)
+                 or est.overlap_std_m > 0.5 * (l1 - l0) / np.sqrt(12))
+        if abs(est.correlation) >= limits.separable_correlation:
+            fit += (f' (not separable from this motion: correlation {est.correlation:+.2f}, '
+                    'they trade off)')
+        elif vague:
+            fit += (' (not separable from this motion: deviations over half the prior\'s, the '
+                    'data barely constrain the wear)')
     ratio = est.nominal_residual_pa / max(est.pressure_residual_pa, limits.model_bias_pa)
     if np.isfinite(ratio) and ratio < limits.anomaly_ratio:
         return OK, (f'consistent with the nominal valve (its residual {ratio:.1f}x the best '

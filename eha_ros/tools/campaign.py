@@ -8,9 +8,16 @@ of jack position, P12 and spool position, as ``eha-compare``), the hf recordings
 offline (``eha-diagnose``), and a report is written: ``report.md`` with the comparison table and
 one folder of PNG plots per scenario (the reference's Figures 6.4-6.16).
 
-Then the maintenance part: the diagnostic valve test (scenario ``valve_test``, the reference's
-map sweep run by the plant) on the nominal valve and on a worn one, recorded, and the wear read
-from each recording by the diagnostic network (``eha-diagnose``), against the truth.
+The health monitor runs live in every run: its ``/eha/health`` and ``/diagnostics`` are
+recorded with the rest, and the report's verdicts are the recorded ones; each recording is
+also replayed through the monitor's logic offline (``eha-diagnose``), which must give the same
+messages bit for bit (``live = offline`` in the report).
+
+Then the maintenance part: the maintenance test (scenario ``maintenance_test``: the reference's
+map sweep run by the plant, then the pre-flight check) on the nominal valve, a worn one and one
+with several faults, recorded; every estimate (clearance, overlap, demagnetisation, filter
+clogging, spool and jack friction, current offset) is read from the recordings against the
+truth.
 
     eha-campaign [--out runs/campaign-<time>] [--scenarios a,b] [--models hf,ga,nn,lut]
                  [--valve-tests nominal,worn] [--processes]
@@ -37,7 +44,13 @@ VALVES = {
     'nominal': {},
     'worn': {'radial_clearance_m': 4.5e-6, 'overlap_supply_m': -0.5e-6,
              'overlap_return_m': -0.5e-6},
+    'faulty': {'demagnetisation': 0.3, 'jack_static_friction_n': 1200.0,
+               'jack_dynamic_friction_n': 600.0, 'offset_a': 6e-4},
 }
+
+
+#: The health monitor's in-service period in the campaign: the shortest scenarios last 0.2 s.
+HEALTH_PERIOD_S = 0.1
 
 
 def available_models(models):
@@ -47,7 +60,7 @@ def available_models(models):
 
 def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=REFERENCE_MODELS,
                  processes=False, progress=print, valve_tests=tuple(VALVES),
-                 valve_test_scenario='valve_test') -> dict:
+                 valve_test_scenario='maintenance_test') -> dict:
     """Run, record, compare and report; returns the summary written to ``summary.json``."""
     from eha_ros.recording.compare import compare_runs, load_run, plot_runs
     from eha_ros.isolation import ros_environment
@@ -68,7 +81,8 @@ def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=REFERENCE_MODE
         path = out / f'{sc}_{label}.mcap'
         with ros_environment() as env:
             r = run_graph(GraphConfig(scenario=sc, model=model, mode='lockstep',
-                                      record=str(path), plant=dict(plant)),
+                                      record=str(path), plant=dict(plant), health=True,
+                                      health_params={'update_period_s': HEALTH_PERIOD_S}),
                           processes=processes, env=env, timeout_s=120)
         runs[(sc, label)] = {'file': path.name, 'sim_s': r.sim_s, 'wall_s': round(r.wall_s, 2),
                              'ticks': int(r.state['tick'].size)}
@@ -76,13 +90,16 @@ def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=REFERENCE_MODE
                  f'{r.wall_s:5.1f} s  -> {path.name}')
     from eha_ros.physics import load_params
     nominal = load_params()
+    from eha_ros.surrogates.monitor import ITEMS
     valve_results = {}
     for valve in valve_tests:
         d = diagnose(str(out / f'{valve_test_scenario}_{valve}.mcap'))
-        d['true_radial_clearance_m'] = VALVES[valve].get('radial_clearance_m',
-                                                         nominal.radial_clearance_m)
-        d['true_overlap_m'] = VALVES[valve].get('overlap_supply_m', nominal.overlap_supply_m)
+        d['true'] = {n: VALVES[valve].get(n, getattr(nominal, n)) for n in ITEMS}
+        d['true_radial_clearance_m'] = d['true']['radial_clearance_m']
+        d['true_overlap_m'] = d['true']['overlap_supply_m']
         valve_results[valve] = d
+    health = {f'{s}/{m}': _health_verdict(out / runs[(s, m)]['file'], diagnose)
+              for (s, m) in runs}
     table, diagnoses = {}, {}
     for sc in scenarios:
         files = [out / f'{sc}_{m}.mcap' for m in models]
@@ -90,15 +107,27 @@ def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=REFERENCE_MODE
         result = compare_runs(loaded, reference=0)
         plot_runs(loaded, out / sc)
         table[sc] = {r['label']: r['relative_error'] for r in result['runs']}
-        diagnoses[sc] = diagnose(str(out / f'{sc}_hf.mcap'))
+        diagnoses[sc] = diagnose(str(out / f'{sc}_hf.mcap'), update_s=HEALTH_PERIOD_S)
     summary = {'models': models, 'scenarios': list(scenarios),
                'wall_s': round(time.monotonic() - t_start, 1),
                'runs': {f'{s}/{m}': v for (s, m), v in runs.items()},
                'relative_error_vs_hf': table, 'diagnosis_hf': diagnoses,
-               'valve_test': valve_results}
+               'valve_test': valve_results, 'health_live': health}
     (out / 'summary.json').write_text(json.dumps(summary, indent=1))
     (out / 'report.md').write_text(_report(summary))
     return summary
+
+
+def _health_verdict(path: Path, diagnose) -> dict:
+    """The live monitor's last verdict from a recording, and whether the offline replay of its
+    states gives the same messages."""
+    try:
+        d = diagnose(str(path), update_s=HEALTH_PERIOD_S)
+    except ParameterError as exc:
+        return {'level': 'n/a', 'message': f'no estimate: {exc}', 'kind': '',
+                'live_messages': 0, 'live_agrees': None}
+    return {'level': d['level'], 'message': d['message'], 'kind': d['kind'],
+            'live_messages': d.get('live_messages', 0), 'live_agrees': d.get('live_agrees')}
 
 
 def _report(s) -> str:
@@ -118,6 +147,15 @@ def _report(s) -> str:
             cells += [_pct(e.get('jack_position_m')), _pct(e.get('p12_pa')),
                       _pct(e.get('spool_position_m'))]
         lines.append(f'| {sc} | ' + ' | '.join(cells) + ' |')
+    lines += ['', 'Health monitor, live in every run (the last `/eha/health` of each recording; '
+              '`live = offline`: the replay of its `/eha/state` through `eha-diagnose` gives the '
+              'same messages bit for bit):', '',
+              '| run | messages | level | live = offline | verdict |', '| --- | ---: | --- | --- '
+              '| --- |']
+    for key, h in s.get('health_live', {}).items():
+        lines.append(f'| {key} | {h["live_messages"]} | {h["level"]} | '
+                     f'{ {True: "yes", False: "NO", None: "n/a"}[h["live_agrees"]]} | '
+                     f'{h["message"]} |')
     lines += ['', 'Offline diagnosis of the hf recordings (`eha-diagnose`, nominal valve: '
               'clearance 2.5 um, overlap 1 um):', '',
               '| scenario | clearance [um] | overlap [um] | residual [MPa] | level |',
@@ -128,16 +166,26 @@ def _report(s) -> str:
                      f'{d["overlap_std_m"] * 1e6:.2f} | {d["pressure_residual_pa"] / 1e6:.3f} | '
                      f'{d["level"]} |')
     if s.get('valve_test'):
-        lines += ['', 'Diagnostic valve test (the plant runs the reference\'s map sweep, jack '
-                  'clamped; `eha-diagnose` reads the wear from the recorded curves with the '
-                  'diagnostic network):', '',
-                  '| valve | clearance: true / estimated [um] | overlap: true / estimated [um] '
-                  '| residual [MPa] | level |', '| --- | ---: | ---: | ---: | --- |']
-        for valve, d in s['valve_test'].items():
-            lines.append(f'| {valve} | {d["true_radial_clearance_m"] * 1e6:.2f} / '
-                         f'{d["radial_clearance_m"] * 1e6:.3f} | '
-                         f'{d["true_overlap_m"] * 1e6:.2f} / {d["overlap_m"] * 1e6:.3f} | '
-                         f'{d["pressure_residual_pa"] / 1e6:.3f} | {d["level"]} |')
+        lines += ['', 'Maintenance test (the plant runs the reference\'s map sweep, jack '
+                  'clamped, then the pre-flight check, jack free; `eha-diagnose` reads every '
+                  'estimate from the recording: clearance and overlap by the diagnostic '
+                  'network, the rest by the pre-flight network). True / estimated +- 1 sigma '
+                  '[level]:', '']
+        valves = list(s['valve_test'])
+        lines += ['| parameter | ' + ' | '.join(valves) + ' |',
+                  '| --- |' + ' --- |' * len(valves)]
+        names = list(next(iter(s['valve_test'].values()))['true'])
+        for n in names:
+            cells = []
+            for v in valves:
+                d = s['valve_test'][v]
+                e = d['estimates'].get(n)
+                cells.append(f'{d["true"][n]:.4g} / ' + (
+                    f'{e["value"]:.4g} +- {e["std"]:.2g} [{e["level"]}]' if e else 'n/a'))
+            lines.append(f'| {n} | ' + ' | '.join(cells) + ' |')
+        lines.append('| verdict | ' + ' | '.join(
+            f'[{s["valve_test"][v]["level"]}] {s["valve_test"][v]["message"]}'
+            for v in valves) + ' |')
     lines += ['', 'Plots: one folder per scenario (`jack_position.png`, `p12.png`, '
               '`spool_position.png`), every model overlaid.', '',
               'Runs (simulated / wall seconds):', '']
