@@ -143,3 +143,55 @@ def test_bad_threshold_files(tmp_path, text, msg):
     f.write_text(text)
     with pytest.raises(ParameterError, match=msg):
         HealthThresholds.load(f)
+
+
+def test_diagnostics_go_stale_when_states_stop(ros_env):
+    """The monitor in this process, fed ten states by a test publisher and then none: its
+    /diagnostics carry one status per monitored parameter (plus the estimate), all with the
+    hardware id; parameters never estimated are STALE; once no state has come for
+    stale_after_s every status is STALE and says for how long."""
+    import time
+
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+    from rclpy.parameter import Parameter
+
+    from eha_ros.graph import TOPIC_DIAGNOSTICS, TOPIC_STATE
+    from eha_ros.msg import ActuatorState
+    from eha_ros.nodes.common import QOS, make_executor
+    from eha_ros.nodes.health_monitor import HealthMonitor
+    from eha_ros.surrogates.monitor import ITEMS
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        mon = HealthMonitor(context=ctx, parameter_overrides=[
+            Parameter('stale_after_s', value=0.3), Parameter('hardware_id', value='sv-42')])
+        peer = rclpy.create_node('stale_probe', context=ctx)
+        got = []
+        peer.create_subscription(DiagnosticArray, TOPIC_DIAGNOSTICS, got.append, QOS)
+        pub = peer.create_publisher(ActuatorState, TOPIC_STATE, QOS)
+        ex = make_executor(ctx)
+        ex.add_node(mon)
+        ex.add_node(peer)
+        end = time.monotonic() + 10
+        while pub.get_subscription_count() < 1 and time.monotonic() < end:
+            ex.spin_once(timeout_sec=0.05)
+        for k in range(10):
+            m = ActuatorState()
+            m.header.stamp.nanosec = (k + 1) * 1_000_000
+            m.sim_time_s = (k + 1) * 1e-3
+            pub.publish(m)
+            ex.spin_once(timeout_sec=0.01)
+        got.clear()
+        end = time.monotonic() + 10
+        while time.monotonic() < end and not any(
+                'no actuator state for' in a.status[0].message for a in got):
+            ex.spin_once(timeout_sec=0.05)
+        arr = next(a for a in got if 'no actuator state for' in a.status[0].message)
+        names = [s.name for s in arr.status]
+        assert names == ['health_monitor: estimate'] + [f'health_monitor: {n}' for n in ITEMS]
+        assert all(s.level == DiagnosticStatus.STALE for s in arr.status)
+        assert all(s.hardware_id == 'sv-42' for s in arr.status)
+        mon.close()
+    finally:
+        rclpy.try_shutdown(context=ctx)

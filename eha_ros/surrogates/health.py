@@ -233,7 +233,8 @@ class ValveTestEstimator:
     by the diagnostic network (:mod:`.diagnostics`), method ``diagnostic-network``.
 
     One estimate per curve; the wear is their median and the uncertainty their standard
-    deviation (zero with one curve).  The residual is the RMS difference between the measured
+    deviation, floored at the network's RMS error on held-out clean maps (recorded in its
+    artefact).  The residual is the RMS difference between the measured
     curves and the map model at the estimated wear: it tells whether the network's answer
     explains the data (a curve outside what the network was trained on does not).
 
@@ -278,8 +279,15 @@ class ValveTestEstimator:
             pred = transient_map(xs, q, params=model_params)['p12_pa']
             r2 += float(np.sum((pred - p) ** 2))
             n += p.size
-        return HealthEstimate(radial_clearance_m=clr, radial_clearance_std_m=float(np.std(c)),
-                              overlap_m=lap, overlap_std_m=float(np.std(o)),
+        # the curves' spread, floored at the network's own held-out error on clean maps
+        # (three agreeing curves do not make it more precise than it is)
+        (l0, l1), (c0, c1) = WEAR_RANGES['overlap_m'], WEAR_RANGES['radial_clearance_m']
+        errs = self.model.meta.get('errors', {}).get('clean', {})
+        floor_c = errs.get('clearance_map', {}).get('rms', 0.0) / 100 * (c1 - c0)
+        floor_o = errs.get('overlap_map', {}).get('rms', 0.0) / 100 * (l1 - l0)
+        return HealthEstimate(radial_clearance_m=clr,
+                              radial_clearance_std_m=float(np.hypot(np.std(c), floor_c)),
+                              overlap_m=lap, overlap_std_m=float(np.hypot(np.std(o), floor_o)),
                               pressure_residual_pa=float(np.sqrt(r2 / n)), samples_used=n,
                               method=self.method)
 
