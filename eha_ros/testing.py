@@ -81,7 +81,9 @@ def _sample_value(cls: type, name: str, type_name: str, index: int):
         if name == 'nanosec':
             return 999_999_937 - index
         low, high = _INT_LIMITS[type_name]
-        return high - index if low == 0 else low + index + 1
+        if low == 0:  # high and distinct; wraps only where a narrow type runs out (uint8[])
+            return high - index if index <= high else high - index % (high // 2)
+        return low + index + 1
     raise NotImplementedError(f'no sample value for {cls.__name__}.{name} of type {type_name}')
 
 

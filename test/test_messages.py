@@ -37,8 +37,10 @@ def test_fields_in_file_order():
     assert ActuatorState.get_fields_and_field_types()['status'] == 'uint8'
     assert list(HealthStatus.get_fields_and_field_types()) == [
         'header', 'radial_clearance_m', 'radial_clearance_std_m', 'overlap_m', 'overlap_std_m',
-        'pressure_residual_pa', 'level', 'method', 'message', 'samples_used']
+        'pressure_residual_pa', 'level', 'method', 'message', 'samples_used',
+        'parameter_names', 'parameter_values', 'parameter_stds', 'parameter_levels']
     assert HealthStatus.get_fields_and_field_types()['samples_used'] == 'uint32'
+    assert HealthStatus.get_fields_and_field_types()['parameter_values'] == 'sequence<double>'
 
 
 def test_constants():
@@ -46,7 +48,7 @@ def test_constants():
 
     assert (ActuatorState.STATUS_OK, ActuatorState.STATUS_END_STOP,
             ActuatorState.STATUS_CAVITATION, ActuatorState.STATUS_DIVERGED,
-            ActuatorState.STATUS_VALVE_TEST) == (0, 1, 2, 3, 4)
+            ActuatorState.STATUS_VALVE_TEST, ActuatorState.STATUS_PREFLIGHT) == (0, 1, 2, 3, 4, 5)
     assert (HealthStatus.LEVEL_OK, HealthStatus.LEVEL_WARN, HealthStatus.LEVEL_ERROR) == (0, 1, 2)
     # Constants are also visible on instances.
     assert ActuatorState().STATUS_DIVERGED == 3

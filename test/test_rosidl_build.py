@@ -38,7 +38,7 @@ def test_package_messages_are_valid():
     assert len(state.fields) == 18
     assert {c.name: c.value for c in state.constants} == {
         'STATUS_OK': 0, 'STATUS_END_STOP': 1, 'STATUS_CAVITATION': 2, 'STATUS_DIVERGED': 3,
-        'STATUS_VALVE_TEST': 4}
+        'STATUS_VALVE_TEST': 4, 'STATUS_PREFLIGHT': 5}
 
 
 @pytest.mark.parametrize('line, field, reason', [
