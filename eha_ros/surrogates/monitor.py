@@ -307,13 +307,14 @@ class MonitorCore:
             lv, why = classify(wear, self.limits)
             items.update(_wear_items(wear, lv, why, self.limits, t))
         self.items.update(items)
-        worst = max(items.values(), key=lambda i: i.level)
-        flagged = [i.name for i in items.values() if i.level > OK]
+        # the verdict covers every parameter known, the valve test's wear included
+        worst = max(self.items.values(), key=lambda i: i.level)
+        flagged = [i.name for i in self.items.values() if i.level > OK]
         if flagged:
             text = f'pre-flight check: {", ".join(flagged)} degraded; {worst.message}'
         else:
             text = 'pre-flight check: no degradation shown'
-        c, o = items.get('radial_clearance_m'), items.get('overlap_supply_m')
+        c, o = self.items.get('radial_clearance_m'), self.items.get('overlap_supply_m')
         return HealthReport(t, 'preflight', method, worst.level, text,
                             c.value if c else 0.0, c.std if c else 0.0,
                             o.value if o else 0.0, o.std if o else 0.0, 0.0, n, items)
