@@ -24,8 +24,8 @@ from eha_ros.graph import MODELS, REFERENCE_SCENARIOS  # noqa: E402
 from eha_ros.physics import default_params  # noqa: E402
 from eha_ros.physics.params import replace  # noqa: E402
 from eha_ros.surrogates.base import load_surrogate  # noqa: E402
-from eha_ros.surrogates.inloop import (EXTRA_SCENARIOS, WEAR, noise_free, run,  # noqa: E402
-                                       summarise, with_noise)
+from eha_ros.surrogates.inloop import (CONTROLLER_PERIOD_S, DT_S, EXTRA_SCENARIOS,  # noqa
+                                       WEAR, noise_free, run, summarise, with_noise)
 
 
 def main(argv=None):

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from eha_ros.graph import DYNAMIC_MODELS, REFERENCE_SCENARIOS
+from eha_ros.graph import DYNAMIC_MODELS
 from eha_ros.physics import simulate
 from eha_ros.physics.params import replace
 
