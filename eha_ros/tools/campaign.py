@@ -63,7 +63,7 @@ COMPARE_MODELS = DYNAMIC_MODELS + ALGEBRAIC_MODELS
 def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=GRAPH_MODELS,
                  processes=False, progress=print, valve_tests=tuple(VALVES),
                  valve_test_scenario='valve_test', compare_models=COMPARE_MODELS,
-                 seeds: int = 5) -> dict:
+                 seeds: int = 3) -> dict:
     """Run, record, compare and report; returns the summary written to ``summary.json``."""
     from eha_ros.recording.compare import compare_runs, load_run, plot_runs
     from eha_ros.isolation import ros_environment
@@ -306,7 +306,7 @@ def main(argv=None) -> int:
                     help='models run through the graph')
     ap.add_argument('--compare-models', default=','.join(COMPARE_MODELS),
                     help='surrogates of the physics-only comparison (empty: none)')
-    ap.add_argument('--seeds', type=int, default=5,
+    ap.add_argument('--seeds', type=int, default=3,
                     help='noise seeds of the physics-only comparison (0: noise off only)')
     ap.add_argument('--valve-tests', default=','.join(VALVES),
                     help='valves given the diagnostic valve test (empty: none)')
