@@ -125,8 +125,14 @@ def _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q
 
 @njit(cache=True)
 def no_fluid_block(data, xs_m, q_m3_s, overlap_m, clearance_m):
-    """Placeholder fluid function of the high-fidelity path (never called there)."""
+    """Placeholder algebraic fluid function of the other paths (never called there)."""
     return 0.0
+
+
+@njit(cache=True)
+def no_flows_block(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
+    """Placeholder metering-edge function of the other paths (never called there)."""
+    return 0.0, 0.0
 
 
 NO_FLUID_DATA = (np.zeros(1),)
@@ -134,16 +140,15 @@ NO_FLUID_DATA = (np.zeros(1),)
 
 @njit  # not cached on disk: see below
 def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, dt_ns, n_steps,
-         steps_per_tick, rec_every, rec, fluid_fn, fluid_data, fluid_mode):
+         steps_per_tick, rec_every, rec, fluid_fn, flows_fn, fluid_data, fluid_mode):
     """Advance the plant state ``s`` (in place) by ``n_steps`` steps of ``dt``.
 
     ``fluid_mode`` 0: the high-fidelity fluid block.  1 (algebraic surrogate): the block is
     replaced by ``P12 = fluid_fn(fluid_data, XS, QJ, overlap, clearance)`` with the load flow
     imposed by the jack, ``QJ = AJ dXJ/dt``; P1, P2 are then reported as mid-pressure +- P12/2.
     2 (dynamic surrogate): only the metering-edge flows come from the surrogate,
-    ``Q1L = fluid_fn(fluid_data, XS, P1, OSSV, ORSV)`` and
-    ``Q2L = -fluid_fn(fluid_data, -XS, P2, OSSV, ORSV)``; chambers, leakage, cavitation clip
-    and jack stay the high-fidelity ones.
+    ``(Q1L, Q2L) = flows_fn(fluid_data, XS, P1, P2, OSSV, ORSV)``; chambers, leakage,
+    cavitation clip and jack stay the high-fidelity ones.
 
     ``steps_per_tick = 0``: open loop, the coil current command ``i_cmd`` is held.  Otherwise
     the controller (state ``ctrl``) runs every ``steps_per_tick`` steps on the quantised
@@ -231,8 +236,7 @@ def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, d
             p2 = pmid - 0.5 * p12
         else:
             if fluid_mode == 2:
-                q1l = fluid_fn(fluid_data, xs, p1, lap, lap_r)
-                q2l = -fluid_fn(fluid_data, -xs, p2, lap, lap_r)
+                q1l, q2l = flows_fn(fluid_data, xs, p1, p2, lap, lap_r)
             else:
                 (rl1s, bl1s, r41s, rl1r, bl1r, r41r,
                  rl2s, bl2s, r42s, rl2r, bl2r, r42r) = valve_coefficients(xs, vc)
@@ -363,9 +367,10 @@ def stability_limit(p: PlantParams, fluid=None) -> tuple[float, str]:
 
 
 def _fluid_args(fluid, p: PlantParams):
-    """``(kernel, kernel data, mode)`` of ``_run`` for a fluid block (``None``: hf)."""
+    """``(P12 kernel, flows kernel, kernel data, mode)`` of ``_run`` for a fluid block
+    (``None``: hf)."""
     if fluid is None:
-        return no_fluid_block, NO_FLUID_DATA, 0
+        return no_fluid_block, no_flows_block, NO_FLUID_DATA, 0
     try:
         kernel = fluid.kernel
         family = getattr(fluid, 'family', 'algebraic')
@@ -374,7 +379,9 @@ def _fluid_args(fluid, p: PlantParams):
         raise ParameterError('fluid must provide kernel and data (a FluidSurrogate)') from None
     except ValueError as exc:  # a surrogate refusing these parameters
         raise ParameterError(str(exc)) from None
-    return kernel, tuple(data), 2 if family == 'dynamic' else 1
+    if family == 'dynamic':
+        return no_fluid_block, kernel, tuple(data), 2
+    return kernel, no_flows_block, tuple(data), 1
 
 
 def dt_to_ns(dt_s: float) -> int:
@@ -441,7 +448,8 @@ class Plant:
                  fluid=None):
         self.params = params if params is not None else default_params()
         self.fluid = fluid
-        self.fluid_fn, self.fluid_data, self.fluid_mode = _fluid_args(fluid, self.params)
+        (self.fluid_fn, self.flows_fn, self.fluid_data,
+         self.fluid_mode) = _fluid_args(fluid, self.params)
         check_dt(self.params, dt_s, fluid)
         self.dt_s = float(dt_s)
         self.dt_ns = dt_to_ns(dt_s)
@@ -457,7 +465,7 @@ class Plant:
 
     def set_params(self, params: PlantParams):
         """Change parameters (wear, degradation) from the next step on."""
-        _, data, _ = _fluid_args(self.fluid, params)  # a dynamic surrogate's data per wear
+        data = _fluid_args(self.fluid, params)[2]  # a dynamic surrogate's data per wear
         check_dt(params, self.dt_s, self.fluid)
         if (params.noise_std_a != self.params.noise_std_a
                 or params.noise_sample_time_s != self.params.noise_sample_time_s):
@@ -486,7 +494,8 @@ class Plant:
                                   self.params, 0, _EMPTY_ARGS, _EMPTY, _EMPTY, noise,
                                   self.params.noise_sample_time_s, self.steps, self.dt_s,
                                   self.dt_ns, int(n_steps), 0, 1, _EMPTY.reshape(0, N_REC),
-                                  self.fluid_fn, self.fluid_data, self.fluid_mode)
+                                  self.fluid_fn, self.flows_fn, self.fluid_data,
+                                  self.fluid_mode)
         self.steps += done
         if status:
             raise _diverged(status, self.time_s)
@@ -567,7 +576,7 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     duration = float(sc.duration_s if duration_s is None else duration_s)
     if not (duration > 0 and math.isfinite(duration)):
         raise ParameterError(f'duration_s = {duration_s} must be a positive number of seconds')
-    fluid_fn, fluid_data, fluid_mode = _fluid_args(fluid, p)
+    fluid_fn, flows_fn, fluid_data, fluid_mode = _fluid_args(fluid, p)
     check_dt(p, dt_s, fluid)
     period = dt_s if controller_period_s is None else float(controller_period_s)
     steps_per_tick = int(round(period / dt_s))
@@ -591,8 +600,8 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     status, n_done, rows, i_last = _run(state, ctrl, 0.0, p, kind, args, com_t, com_v,
                                         samples, p.noise_sample_time_s, 0, dt_s,
                                         dt_to_ns(dt_s), n_steps,
-                                        steps_per_tick, rec_every, rec, fluid_fn, fluid_data,
-                                        fluid_mode)
+                                        steps_per_tick, rec_every, rec, fluid_fn, flows_fn,
+                                        fluid_data, fluid_mode)
     wall = time.perf_counter() - t0
     if status:
         raise _diverged(status, (n_done * dt_to_ns(dt_s)) * 1e-9)

@@ -33,10 +33,10 @@ Validity (stored in each artefact's ``meta['valid_range']``)
     refused.
 
 Kernel interface (the plant's ``_run``, mode 2)
-    ``kernel(data, xs_m, p_pa, lap_supply_m, lap_return_m) -> q [m^3/s]``: the net flow into
-    the chamber at pressure ``p_pa`` fed by the supply edge at ``xs - lap_supply`` and drained
-    by the return edge at ``-xs - lap_return``.  Chamber 1: ``Q1L = kernel(d, XS, P1, ...)``;
-    chamber 2, by the valve's symmetry: ``Q2L = -kernel(d, -XS, P2, ...)``.  ``data`` is what
+    ``kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m) -> (Q1L, Q2L)`` [m^3/s]:
+    the net flow into chamber 1 (edges 1S at ``xs - lap_supply``, 1R at ``-xs - lap_return``)
+    and out of chamber 2 (2R at ``xs - lap_return``, 2S at ``-xs - lap_supply``), as
+    :func:`eha_ros.physics.valve.valve_flows`.  ``data`` is what
     :meth:`DynamicSurrogate.prepare` returns for the current wear and pressures (the
     clearance is folded in once per run or parameter change, not per step).
 
@@ -117,41 +117,50 @@ def edge_conductance(s_m, dp_pa, clearance_m, params: PlantParams | None = None)
 
 # --- kernels ----------------------------------------------------------------------------------
 
+@njit(cache=True, inline='always')
+def _lut_edge(data, i, a, dp):
+    """One edge's flow from the prepared table, its opening already located (``i``, ``a``)."""
+    k = data[6]
+    v = math.sqrt(abs(dp))
+    j, b = _locate(data[3], data[4], data[5], v)
+    k0 = k[i, j] + b * (k[i, j + 1] - k[i, j])
+    k1 = k[i + 1, j] + b * (k[i + 1, j + 1] - k[i + 1, j])
+    q = v * (k0 + a * (k1 - k0))
+    return -q if dp < 0.0 else q
+
+
 @register_kernel('dlut')
 @njit(cache=True)
-def dlut_kernel(data, xs_m, p_pa, lap_supply_m, lap_return_m):
-    """Net flow [m^3/s] into a chamber, edges from the prepared table ``K(s, sqrt|dp|)``.
+def dlut_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
+    """(Q1L, Q2L) [m^3/s], edges from the prepared table ``K(s, sqrt|dp|)``.
 
     ``data = (s_axis, s_aux, s_index, v_axis, v_aux, v_index, k_table, consts)`` with
-    ``consts = [ps, pr]`` (:func:`prepare_dlut`).
+    ``consts = [ps, pr]`` (:func:`prepare_dlut`).  With equal laps the edges 1S/2R and 1R/2S
+    share their openings, so two of the four are located.
     """
-    k = data[6]
     ps = data[7][0]
     pr = data[7][1]
-    q = 0.0
-    for e in range(2):
-        if e == 0:
-            s = xs_m - lap_supply_m
-            dp = ps - p_pa
-        else:
-            s = -xs_m - lap_return_m
-            dp = p_pa - pr
-        v = math.sqrt(abs(dp))
-        i, a = _locate(data[0], data[1], data[2], s)
-        j, b = _locate(data[3], data[4], data[5], v)
-        k0 = k[i, j] + b * (k[i, j + 1] - k[i, j])
-        k1 = k[i + 1, j] + b * (k[i + 1, j + 1] - k[i + 1, j])
-        qe = v * (k0 + a * (k1 - k0))
-        if dp < 0.0:
-            qe = -qe
-        q = q + qe if e == 0 else q - qe
-    return q
+    i1s, a1s = _locate(data[0], data[1], data[2], xs_m - lap_supply_m)
+    i1r, a1r = _locate(data[0], data[1], data[2], -xs_m - lap_return_m)
+    if lap_supply_m == lap_return_m:
+        i2s, a2s, i2r, a2r = i1r, a1r, i1s, a1s
+    else:
+        i2s, a2s = _locate(data[0], data[1], data[2], -xs_m - lap_supply_m)
+        i2r, a2r = _locate(data[0], data[1], data[2], xs_m - lap_return_m)
+    q1l = _lut_edge(data, i1s, a1s, ps - p1_pa) - _lut_edge(data, i1r, a1r, p1_pa - pr)
+    q2l = _lut_edge(data, i2r, a2r, p2_pa - pr) - _lut_edge(data, i2s, a2s, ps - p2_pa)
+    return q1l, q2l
+
+
+@njit(cache=True, inline='always')
+def _nn_edge(net, s, dp, c):
+    return dp * math.exp(mlp_kernel(net, s, abs(dp), c, 0.0))
 
 
 @register_kernel('dnn')
 @njit(cache=True)
-def dnn_kernel(data, xs_m, p_pa, lap_supply_m, lap_return_m):
-    """Net flow [m^3/s] into a chamber, edges from the network ``ln G(s, |dp|, c)``.
+def dnn_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
+    """(Q1L, Q2L) [m^3/s], edges from the network ``ln G(s, |dp|, c)``.
 
     ``data = (layout, inputs, output, theta, consts)``, the packed MLP of :mod:`.nn` (its
     sources 0, 1, 2 read the opening, ``|dp|`` and the clearance) and ``consts = [ps, pr, c]``.
@@ -160,11 +169,11 @@ def dnn_kernel(data, xs_m, p_pa, lap_supply_m, lap_return_m):
     pr = data[4][1]
     c = data[4][2]
     net = (data[0], data[1], data[2], data[3])
-    dp1 = ps - p_pa
-    dp2 = p_pa - pr
-    q1 = dp1 * math.exp(mlp_kernel(net, xs_m - lap_supply_m, abs(dp1), c, 0.0))
-    q2 = dp2 * math.exp(mlp_kernel(net, -xs_m - lap_return_m, abs(dp2), c, 0.0))
-    return q1 - q2
+    q1l = (_nn_edge(net, xs_m - lap_supply_m, ps - p1_pa, c)
+           - _nn_edge(net, -xs_m - lap_return_m, p1_pa - pr, c))
+    q2l = (_nn_edge(net, xs_m - lap_return_m, p2_pa - pr, c)
+           - _nn_edge(net, -xs_m - lap_supply_m, ps - p2_pa, c))
+    return q1l, q2l
 
 
 #: Genes of the closed form (:func:`ga_edge_flow`), in order.
@@ -202,20 +211,22 @@ def ga_edge_flow(s, dp, cf):
 
 @register_kernel('dga')
 @njit(cache=True)
-def dga_kernel(data, xs_m, p_pa, lap_supply_m, lap_return_m):
-    """Net flow [m^3/s] into a chamber from the closed form; ``data = (cf, consts)`` with
-    ``consts = [ps, pr]``."""
+def dga_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
+    """(Q1L, Q2L) [m^3/s] from the closed form; ``data = (cf, consts)``, ``consts = [ps, pr]``."""
     cf = data[0]
     ps = data[1][0]
     pr = data[1][1]
-    return (ga_edge_flow(xs_m - lap_supply_m, ps - p_pa, cf)
-            - ga_edge_flow(-xs_m - lap_return_m, p_pa - pr, cf))
+    q1l = (ga_edge_flow(xs_m - lap_supply_m, ps - p1_pa, cf)
+           - ga_edge_flow(-xs_m - lap_return_m, p1_pa - pr, cf))
+    q2l = (ga_edge_flow(xs_m - lap_return_m, p2_pa - pr, cf)
+           - ga_edge_flow(-xs_m - lap_supply_m, ps - p2_pa, cf))
+    return q1l, q2l
 
 
 @njit  # not cached: a kernel argument's type names the kernel object (see physics.plant)
-def _chamber_loop(kernel, data, xs, p, lap_s, lap_r, out):
+def _chamber_loop(kernel, data, xs, p1, p2, lap_s, lap_r, out1, out2):
     for i in range(xs.size):
-        out[i] = kernel(data, xs[i], p[i], lap_s[i], lap_r[i])
+        out1[i], out2[i] = kernel(data, xs[i], p1[i], p2[i], lap_s[i], lap_r[i])
 
 
 @njit  # not cached: see _chamber_loop
@@ -223,7 +234,7 @@ def _edge_loop(kernel, data, consts, s, dp, out):
     for i in range(s.size):
         consts[0] = dp[i]  # supply pressure: the supply edge sees dp, the return edge none
         consts[1] = 0.0
-        out[i] = kernel(data, s[i], 0.0, 0.0, 0.0)
+        out[i] = kernel(data, s[i], 0.0, 0.0, 0.0, 0.0)[0]
 
 
 # --- preparation per wear ---------------------------------------------------------------------
@@ -319,17 +330,22 @@ class DynamicSurrogate(FluidSurrogate):
             cache[key] = PREPARERS[self.meta['kind']](self.data, self.meta, p)
         return cache[key]
 
-    def chamber_flow(self, xs_m, p_pa, params: PlantParams | None = None):
-        """Net flow [m^3/s] into chamber 1 at spool ``xs_m`` [m] and pressure ``p_pa`` [Pa]
+    def chamber_flows(self, xs_m, p1_pa, p2_pa, params: PlantParams | None = None):
+        """(Q1L, Q2L) [m^3/s] at spool ``xs_m`` [m] and chamber pressures [Pa]
         (broadcastable), at the wear of ``params`` (default nominal)."""
         p = params if params is not None else default_params()
         data = self.prepare(p)
-        arrs = np.broadcast_arrays(np.asarray(xs_m, dtype=float), np.asarray(p_pa, dtype=float))
-        xs, pp = (np.ascontiguousarray(a.ravel()) for a in arrs)
-        out = np.empty(xs.size)
-        _chamber_loop(self.kernel, data, xs, pp, np.full(xs.size, p.overlap_supply_m),
-                      np.full(xs.size, p.overlap_return_m), out)
-        return out.reshape(arrs[0].shape)
+        arrs = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (xs_m, p1_pa, p2_pa)))
+        xs, a1, a2 = (np.ascontiguousarray(a.ravel()) for a in arrs)
+        o1, o2 = np.empty(xs.size), np.empty(xs.size)
+        _chamber_loop(self.kernel, data, xs, a1, a2, np.full(xs.size, p.overlap_supply_m),
+                      np.full(xs.size, p.overlap_return_m), o1, o2)
+        return o1.reshape(arrs[0].shape), o2.reshape(arrs[0].shape)
+
+    def chamber_flow(self, xs_m, p_pa, params: PlantParams | None = None):
+        """Net flow [m^3/s] into chamber 1 (Q1L) at spool ``xs_m`` [m] and its pressure
+        ``p_pa`` [Pa] (broadcastable)."""
+        return self.chamber_flows(xs_m, p_pa, p_pa, params)[0]
 
     def stability_limit(self, p: PlantParams) -> tuple[float, str]:
         """Largest stable step [s] of the chamber pressures under this surrogate's flows:

@@ -137,11 +137,17 @@ def noise_free(p, scenario, surrogates, large_dt=0.0, keep_runs=False):
 
 def with_noise(p, scenario, surrogates, seeds=5):
     """hf's seed-to-seed spread and each model's error against hf with the same seed, at the
-    parameters ``p`` (noise on), seeds ``0 .. seeds - 1`` (hf also ``seeds``)."""
+    parameters ``p`` (noise on), seeds ``0 .. seeds - 1`` (hf also ``seeds``).  For reference
+    also hf with the discharge coefficient +0.1 % against hf, same seeds: how far a
+    perturbation no model could resolve moves hf under the same noise."""
     pn = p
     hf = [run(pn, scenario, seed=k) for k in range(seeds + 1)]
     spread = [_errors(hf[k + 1], hf[k]) for k in range(seeds)]
+    pc = replace(pn, discharge_coefficient=pn.discharge_coefficient * 1.001)
+    same = [_errors(run(pc, scenario, seed=k), hf[k]) for k in range(seeds)]
     out = {'hf_seed_to_seed': {q: float(np.mean([e[q] for e in spread])) for q in ('jack', 'p12')},
+           'hf_cd_plus_0.1%_same_seed': {q: float(np.mean([e[q] for e in same]))
+                                         for q in ('jack', 'p12')},
            'models': {}}
     for name, s in surrogates.items():
         try:
