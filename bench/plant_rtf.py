@@ -5,7 +5,13 @@ evaluated every plant step (the reference's continuous PID) and at 1 kHz (the RO
 rate), for a step and a sine command; best of ``--repeat`` runs after a warm-up (JIT
 compilation excluded and reported separately).
 
-    python bench/plant_rtf.py [--duration 1.0] [--repeat 3]
+With ``--models`` (default: every shipped surrogate) it adds one row per fluid model: the
+plant with that surrogate in place of the hf fluid block, controller at 1 kHz, same commands,
+at dt = 1 us and, for the dynamic surrogates, at ``--large-dt`` (2 us, the larger step at
+which ``bench/inloop.py`` measures them against hf): wall seconds per simulated second and the
+ratio to hf's.
+
+    python bench/plant_rtf.py [--duration 1.0] [--repeat 3] [--models dlut,dnn,dga,lut,...]
 """
 
 import argparse
@@ -16,13 +22,17 @@ import time
 
 os.environ.setdefault('NUMBA_NUM_THREADS', '1')
 
+from eha_ros.graph import DYNAMIC_MODELS, MODELS  # noqa: E402
 from eha_ros.physics import default_params, simulate  # noqa: E402
+from eha_ros.surrogates.base import load_surrogate  # noqa: E402
 
 
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument('--duration', type=float, default=1.0)
     ap.add_argument('--repeat', type=int, default=3)
+    ap.add_argument('--models', default=','.join(m for m in MODELS if m != 'hf'))
+    ap.add_argument('--large-dt', type=float, default=2e-6)
     args = ap.parse_args()
     p = default_params()
     t0 = time.perf_counter()
@@ -46,6 +56,27 @@ def main():
     out['real_time_factor'] = out['cases']['step_0p1/controller_every_step']['real_time_factor']
     out['real_time_factor_1khz_controller'] = out['cases']['step_0p1/controller_1khz'][
         'real_time_factor']
+    models = [m for m in args.models.split(',') if m]
+    out['models'] = {}
+    for model in ['hf'] + models:
+        fluid = None if model == 'hf' else load_surrogate(model, p)
+        dts = [1e-6] + ([args.large_dt] if model in DYNAMIC_MODELS else [])
+        for dt in dts:
+            simulate(p, 'step_0p1', duration_s=2e-3, dt_s=dt, controller_period_s=1e-3,
+                     fluid=fluid)  # compile
+            row = {}
+            for scenario in ('step_0p1', 'sine_0p1_10pi'):
+                best = min(simulate(p, scenario, duration_s=args.duration, dt_s=dt,
+                                    controller_period_s=1e-3, fluid=fluid).wall_time_s
+                           for _ in range(args.repeat))
+                row[scenario] = {'wall_s_per_simulated_s': round(best / args.duration, 5),
+                                 'ns_per_step': round(best / (args.duration / dt) * 1e9, 1)}
+            out['models'][f'{model}@dt={dt:g}'] = row
+    hf_cost = {sc: out['models']['hf@dt=1e-06'][sc]['wall_s_per_simulated_s']
+               for sc in ('step_0p1', 'sine_0p1_10pi')}
+    for row in out['models'].values():
+        for sc, v in row.items():
+            v['cost_vs_hf'] = round(v['wall_s_per_simulated_s'] / hf_cost[sc], 3)
     print(json.dumps(out))
 
 

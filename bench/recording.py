@@ -13,6 +13,7 @@ Prints one JSON object::
 
     python bench/recording.py [--duration 60] [--rate 1000] [--replay-seconds 10]
     python bench/recording.py --graph          # record the real graph instead
+    python bench/recording.py --kill-trials 10 # SIGKILL the recorder, eha-recover, rosbags
 
 ``--graph``: the real node graph instead (each node its own process, realtime at 1 kHz, the
 ``sine_0p1_5pi`` command continued for the duration, health monitor on); published counts are
@@ -227,9 +228,16 @@ def run_real_graph(env: dict, duration_s: float, rate_hz: float) -> dict:
                   timeout_s=60)
     arrival = r.state['arrival_s']
     late = np.abs(np.diff(arrival) - 1.0 / rate_hz) * 1e6 if arrival.size > 1 else np.zeros(1)
+    timing = {name: {k: float(v) for k, v in d['values'].items()}
+              for name, d in r.diagnostics.items() if name.endswith(': timing')}
     return {'simulated_s': r.sim_s, 'wall_s': r.wall_s, 'published': None,
             'lateness_p50_us': float(np.percentile(late, 50)),
-            'lateness_p99_us': float(np.percentile(late, 99))}
+            'lateness_p99_us': float(np.percentile(late, 99)),
+            'node_timing': {n: {k: t.get(k) for k in (
+                'Events since startup', 'On time since startup (%)', 'Late ticks since startup',
+                'Slipped ticks since startup', 'Overruns since startup')}
+                for n, t in timing.items()},
+            'health_estimates': len(r.health)}
 
 
 def run(duration_s: float = 60.0, rate_hz: float = 1000.0, replay_s: float = 10.0,
@@ -238,6 +246,7 @@ def run(duration_s: float = 60.0, rate_hz: float = 1000.0, replay_s: float = 10.
     from eha_ros.recording.reader import scan
     from eha_ros.isolation import ros_environment
 
+    load_before = os.getloadavg()
     with ros_environment() as env, tempfile.TemporaryDirectory(prefix='eha_bench_rec_') as tmp:
         env.pop('ROS_PYTHON_CHECK_FIELDS', None)   # field checks are a test aid, not a cost
         cwd = Path(tmp)
@@ -305,8 +314,95 @@ def run(duration_s: float = 60.0, rate_hz: float = 1000.0, replay_s: float = 10.
             'replay': _replay_timing(output, min(replay_s, duration_s), env, cwd),
             'cpu': platform.processor() or platform.machine(),
             'cores': os.cpu_count(),
+            # what the recorder itself stored in the file's eha_ros metadata record
+            'counts_stored_in_file': {
+                'recorded_messages': json.loads(
+                    info.metadata['eha_ros']['recorded_messages']),
+                'lost_messages': lost},
+            'load_average_1_5_15_before': [round(x, 2) for x in load_before],
+            'load_average_1_5_15_after': [round(x, 2) for x in os.getloadavg()],
         }
+        if graph:
+            result['node_timing'] = pub['node_timing']
+            result['health_estimates'] = pub['health_estimates']
         return result
+
+
+def kill_trials(trials: int, rate_hz: float = 1000.0, seed: int = 0) -> dict:
+    """SIGKILL the recorder at random moments while the synthetic publisher runs; recover
+    each file with ``eha-recover`` and read it with rosbags (an independent reader).
+
+    A trial passes when rosbags decodes every message of the recovered file, their count
+    equals what the killed file holds up to its last complete chunk (every message received
+    before the last flushed chunk is there), and the holes in the recovered ``/eha/state``
+    ticks are exactly the losses the recovered file reports for it (messages the recorder
+    never received, counted from the sequence numbers)."""
+    from rosbags.highlevel import AnyReader
+
+    from eha_ros.graph import TOPIC_STATE
+    from eha_ros.isolation import ros_environment
+    from eha_ros.recording.reader import scan
+
+    rng = np.random.default_rng(seed)
+    results = []
+    for trial in range(trials):
+        kill_after_s = float(rng.uniform(0.5, 4.0))
+        with ros_environment() as env, tempfile.TemporaryDirectory(prefix='eha_kill_') as tmp:
+            env.pop('ROS_PYTHON_CHECK_FIELDS', None)
+            cwd = Path(tmp)
+            output, fixed = cwd / 'killed.mcap', cwd / 'recovered.mcap'
+            recorder = subprocess.Popen([str(BIN / 'recorder'), '-o', str(output)], env=env,
+                                        cwd=cwd, stdout=subprocess.DEVNULL,
+                                        stderr=subprocess.PIPE, text=True)
+            source = subprocess.Popen(
+                [sys.executable, str(HERE), '--role', 'publisher', '--duration', '6',
+                 '--rate', str(rate_hz)], env=env, cwd=cwd, stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE, text=True)
+            # the moment counts from the first recorded chunk (the recorder is then running)
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:
+                try:
+                    if scan(output).chunks:
+                        break
+                except Exception:
+                    pass
+                time.sleep(0.05)
+            time.sleep(kill_after_s)
+            recorder.send_signal(signal.SIGKILL)
+            recorder.communicate()
+            source.communicate(timeout=120)
+            killed = scan(output)
+            done = subprocess.run([str(BIN / 'eha-recover'), str(output), '-o', str(fixed)],
+                                  env=env, cwd=cwd, capture_output=True, text=True)
+            decoded, ticks, error = 0, [], None
+            try:
+                with AnyReader([fixed]) as reader:
+                    for conn, _, raw in reader.messages():
+                        msg = reader.deserialize(raw, conn.msgtype)
+                        decoded += 1
+                        if conn.topic == TOPIC_STATE:
+                            ticks.append(int(msg.tick))
+            except Exception as exc:  # reported, and the trial fails
+                error = f'{type(exc).__name__}: {exc}'
+            held = sum(killed.message_counts.values())
+            missing = int(np.sum(np.diff(ticks) - 1)) if len(ticks) > 1 else 0
+            recovered = scan(fixed) if done.returncode == 0 else None
+            lost = recovered.lost_messages() if recovered else {}
+            publishers = (recovered.run_info().get('publishers', {}).get(TOPIC_STATE)
+                          if recovered else None)
+            results.append({
+                'kill_after_first_chunk_s': round(kill_after_s, 3),
+                'killed_file_complete': killed.complete, 'killed_file_messages': held,
+                'recover_exit': done.returncode, 'rosbags_decoded': decoded,
+                'rosbags_error': error, 'state_ticks': len(ticks),
+                'state_ticks_missing': missing, 'lost_reported': lost,
+                'state_ticks_repeated': len(ticks) - len(set(ticks)),
+                'state_publishers': publishers,
+                'passed': (done.returncode == 0 and error is None and decoded == held
+                           and held > 0 and not killed.complete
+                           and missing == lost.get(TOPIC_STATE, -1))})
+    return {'benchmark': 'recording_kill_trials', 'trials': trials,
+            'passed': sum(r['passed'] for r in results), 'results': results}
 
 
 def main() -> int:
@@ -317,9 +413,14 @@ def main() -> int:
                     help='seconds of /eha/state replayed for the timing figures (10)')
     ap.add_argument('--graph', action='store_true',
                     help='record the real actuator graph instead of the synthetic publisher')
+    ap.add_argument('--kill-trials', type=int, default=0, metavar='N',
+                    help='instead: SIGKILL the recorder at N random moments, recover, check')
     ap.add_argument('--role', choices=('bench', 'publisher'), default='bench',
                     help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.kill_trials:
+        print(json.dumps(kill_trials(args.kill_trials, args.rate)))
+        return 0
     if args.role == 'publisher':
         print(json.dumps(_publish(args.duration, args.rate, wait_s=15.0)))
         return 0

@@ -33,6 +33,7 @@ __all__ = ['NAMESPACE', 'TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOP
            'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'TOPICS', 'RATES_HZ', 'QOS_DEPTH',
            'QOS_RELIABILITY', 'QOS_DURABILITY', 'QOS_HISTORY', 'graph_qos', 'topics_in',
            'normalize_type', 'message_class', 'MODES', 'MODELS', 'REFERENCE_MODELS',
+           'DYNAMIC_MODELS', 'ALGEBRAIC_MODELS',
            'STATUS_OK', 'STATUS_END_STOP', 'STATUS_CAVITATION', 'STATUS_DIVERGED',
            'STATUS_VALVE_TEST', 'STATUS_PREFLIGHT', 'STATUS_NAMES', 'LEVEL_OK', 'LEVEL_WARN',
            'LEVEL_ERROR', 'LEVEL_NAMES', 'REFERENCE_SCENARIOS', 'NODES', 'TIMING_SUFFIX']
@@ -74,7 +75,14 @@ NODES = ('command_generator', 'controller', 'servovalve_plant', 'health_monitor'
 MODES = ('realtime', 'lockstep')
 
 #: Fluid-dynamic blocks the plant can run: the high-fidelity model and the shipped surrogates.
-MODELS = ('hf', 'lut', 'ga', 'nn', 'nn2')
+MODELS = ('hf', 'lut', 'ga', 'nn', 'nn2', 'dlut', 'dnn', 'dga')
+
+#: The dynamic surrogates (metering-edge flows learned, chambers and jack physical): the
+#: recommended in-loop surrogates.
+DYNAMIC_MODELS = ('dlut', 'dnn', 'dga')
+
+#: The reference's algebraic surrogates P12(XS, Q[, wear]), kept as its reproduction.
+ALGEBRAIC_MODELS = ('lut', 'ga', 'nn', 'nn2')
 
 #: The reference's four models of its comparison (section 6.3), in its order.
 REFERENCE_MODELS = ('hf', 'ga', 'nn', 'lut')

@@ -48,7 +48,8 @@ def test_campaign_runs_records_compares_and_reports(tmp_path, ros_env, monkeypat
     out = tmp_path / 'campaign'
     s = run_campaign(out, scenarios=['step_0p1'], models=['hf', 'ga', 'nn', 'lut'],
                      progress=lambda line: None, valve_tests=['worn'],
-                     valve_test_scenario='valve_test_quick')
+                     valve_test_scenario='valve_test_quick', compare_models=['dlut', 'lut'],
+                     seeds=2)
     assert (out / 'report.md').is_file() and (out / 'step_0p1' / 'p12.png').is_file()
     summary = json.loads((out / 'summary.json').read_text())
     assert summary['models'][0] == 'hf'
@@ -66,6 +67,14 @@ def test_campaign_runs_records_compares_and_reports(tmp_path, ros_env, monkeypat
     assert set(live) == {f'step_0p1/{m}' for m in summary['models']} | {'valve_test_quick/worn'}
     for key, h in live.items():
         assert h['live_messages'] >= 1 and h['live_agrees'] is True, key
+    # physics-only comparison: noise off against the yardstick, with noise against hf's spread
+    c = summary['comparison']
+    assert c['models'] == ['dlut', 'lut'] and (out / 'comparison' / 'step_0p1.png').is_file()
+    nf = c['noise_free']['step_0p1']
+    assert 0 < nf['yardstick']['jack'] < 0.01 and nf['bound']['p12'] >= 0.05
+    assert nf['models']['dlut']['meets'] and not nf['models']['lut']['meets']
+    assert c['noise']['step_0p1']['hf_seed_to_seed']['p12'] > 0
+    assert 'yardstick' in (out / 'report.md').read_text()
     assert s == summary
     with pytest.raises(FileExistsError):
         run_campaign(out, scenarios=['step_0p1'], models=['hf'])

@@ -2,8 +2,9 @@
 ``ActuatorState`` every tick.
 
 ``model`` selects the fluid-dynamic block: ``hf`` (the high-fidelity chambers and metering
-edges) or a surrogate shipped in ``eha_ros/surrogates/models`` (``lut``, ``ga``, ``nn``,
-``nn2``).  Between ticks the plant takes ``1/rate_hz / dt_s`` steps of ``dt_s`` (1 us) with the
+edges) or a surrogate shipped in ``eha_ros/surrogates/models``: the dynamic ones ``dlut``,
+``dnn``, ``dga`` (metering-edge flows learned, chambers and jack physical: the recommended
+in-loop surrogates) or the reference's algebraic ``lut``, ``ga``, ``nn``, ``nn2``.  Between ticks the plant takes ``1/rate_hz / dt_s`` steps of ``dt_s`` (1 us) with the
 last coil-current command held.
 
 Realtime mode: a wall-clock timer at ``rate_hz``; simulated time is locked to the wall clock:

@@ -125,8 +125,14 @@ def _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q
 
 @njit(cache=True)
 def no_fluid_block(data, xs_m, q_m3_s, overlap_m, clearance_m):
-    """Placeholder fluid function of the high-fidelity path (never called there)."""
+    """Placeholder algebraic fluid function of the other paths (never called there)."""
     return 0.0
+
+
+@njit(cache=True)
+def no_flows_block(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
+    """Placeholder metering-edge function of the other paths (never called there)."""
+    return 0.0, 0.0
 
 
 NO_FLUID_DATA = (np.zeros(1),)
@@ -134,12 +140,15 @@ NO_FLUID_DATA = (np.zeros(1),)
 
 @njit  # not cached on disk: see below
 def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, dt_ns, n_steps,
-         steps_per_tick, rec_every, rec, fluid_fn, fluid_data, use_fluid_fn):
+         steps_per_tick, rec_every, rec, fluid_fn, flows_fn, fluid_data, fluid_mode):
     """Advance the plant state ``s`` (in place) by ``n_steps`` steps of ``dt``.
 
-    ``use_fluid_fn``: the fluid-dynamic block is replaced by a surrogate
-    ``P12 = fluid_fn(fluid_data, XS, QJ, overlap, clearance)`` with the load flow imposed by the
-    jack, ``QJ = AJ dXJ/dt``; P1, P2 are then reported as mid-pressure +- P12/2.
+    ``fluid_mode`` 0: the high-fidelity fluid block.  1 (algebraic surrogate): the block is
+    replaced by ``P12 = fluid_fn(fluid_data, XS, QJ, overlap, clearance)`` with the load flow
+    imposed by the jack, ``QJ = AJ dXJ/dt``; P1, P2 are then reported as mid-pressure +- P12/2.
+    2 (dynamic surrogate): only the metering-edge flows come from the surrogate,
+    ``(Q1L, Q2L) = flows_fn(fluid_data, XS, P1, P2, OSSV, ORSV)``; chambers, leakage,
+    cavitation clip and jack stay the high-fidelity ones.
 
     ``steps_per_tick = 0``: open loop, the coil current command ``i_cmd`` is held.  Otherwise
     the controller (state ``ctrl``) runs every ``steps_per_tick`` steps on the quantised
@@ -168,6 +177,7 @@ def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, d
     q = p.sensor_resolution_m
     vc = valve_constants(p)
     lap = p.overlap_supply_m
+    lap_r = p.overlap_return_m
     clr = p.radial_clearance_m
     pmid = 0.5 * (ps + pr)
     steps_per_noise = dt / noise_dt
@@ -217,7 +227,7 @@ def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, d
         k = int(n * steps_per_noise)
         y, i = coil_current(y, i_cmd, noise[k], p)
         f = torque_motor_force(i, xf, p)
-        if use_fluid_fn:
+        if fluid_mode == 1:
             qj = aj * vj
             q1l = qj
             q2l = qj
@@ -225,10 +235,13 @@ def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, d
             p1 = pmid + 0.5 * p12
             p2 = pmid - 0.5 * p12
         else:
-            (rl1s, bl1s, r41s, rl1r, bl1r, r41r,
-             rl2s, bl2s, r42s, rl2r, bl2r, r42r) = valve_coefficients(xs, vc)
-            q1l = net_flow(ps - p1, rl1s, bl1s, r41s, p1 - pr, rl1r, bl1r, r41r)
-            q2l = net_flow(p2 - pr, rl2r, bl2r, r42r, ps - p2, rl2s, bl2s, r42s)
+            if fluid_mode == 2:
+                q1l, q2l = flows_fn(fluid_data, xs, p1, p2, lap, lap_r)
+            else:
+                (rl1s, bl1s, r41s, rl1r, bl1r, r41r,
+                 rl2s, bl2s, r42s, rl2r, bl2r, r42r) = valve_coefficients(xs, vc)
+                q1l = net_flow(ps - p1, rl1s, bl1s, r41s, p1 - pr, rl1r, bl1r, r41r)
+                q2l = net_flow(p2 - pr, rl2r, bl2r, r42r, ps - p2, rl2s, bl2s, r42s)
             qj = 0.5 * (q1l + q2l)
             p12 = p1 - p2
         xs_old = xs
@@ -236,7 +249,7 @@ def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, d
         xf, vf = flapper_step(xf, vf, xs_old, f, cf, p, dt)
         qm = aj * vj + clk * p12
         xj, vj = jack_step(xj, vj, p12, p, dt)
-        if use_fluid_fn:
+        if fluid_mode == 1:
             p1t = p1  # the surrogate's pressures at the start of this step
             p2t = p2
         else:
@@ -302,8 +315,13 @@ def _edge_conductance_max(p: PlantParams) -> float:
     return worst
 
 
-def stability_limits(p: PlantParams) -> list[tuple[float, str]]:
+def stability_limits(p: PlantParams, fluid=None) -> list[tuple[float, str]]:
     """Per block, the largest stable step [s] of its linearisation under the explicit scheme.
+
+    With a surrogate ``fluid`` the chamber bound is replaced by the surrogate's own feedback
+    bound (``fluid.stability_limit(p)``): for an algebraic ``P12(XS, Q)`` the jack sees
+    ``AJ^2 dP12/dQ`` as a damper, for a dynamic one its flows' conductance sets the chamber
+    bound as the valve's does.
 
     The semi-implicit Euler oscillator ``w dt < min(1/zeta, 2 (sqrt(zeta^2 + 1) - zeta))`` for
     the first stage, ``w dt < 2`` for the jack on its hydraulic spring, ``dt < 2 tau`` for the
@@ -336,22 +354,34 @@ def stability_limits(p: PlantParams) -> list[tuple[float, str]]:
         # quasi-static flapper: XS' = drive/c_eq * (F - KSF XS)/(KF + KSF)
         rate = drive / c_eq * p.feedback_spring_stiffness_n_m / k_f
         limits.append((2.0 / rate, 'second stage (spool) lag'))
+    if fluid is not None and hasattr(fluid, 'stability_limit'):
+        limits = [x for x in limits if not x[1].startswith('chamber')]
+        limits.append(fluid.stability_limit(p))
     return limits
 
 
-def stability_limit(p: PlantParams) -> tuple[float, str]:
+def stability_limit(p: PlantParams, fluid=None) -> tuple[float, str]:
     """Largest stable plant step [s] and the block that sets it (see
     :func:`stability_limits`)."""
-    return min(stability_limits(p), key=lambda x: x[0])
+    return min(stability_limits(p, fluid), key=lambda x: x[0])
 
 
-def _fluid_args(fluid):
+def _fluid_args(fluid, p: PlantParams):
+    """``(P12 kernel, flows kernel, kernel data, mode)`` of ``_run`` for a fluid block
+    (``None``: hf)."""
     if fluid is None:
-        return no_fluid_block, NO_FLUID_DATA, False
+        return no_fluid_block, no_flows_block, NO_FLUID_DATA, 0
     try:
-        return fluid.kernel, tuple(fluid.data), True
+        kernel = fluid.kernel
+        family = getattr(fluid, 'family', 'algebraic')
+        data = fluid.prepare(p) if hasattr(fluid, 'prepare') else fluid.data
     except AttributeError:
         raise ParameterError('fluid must provide kernel and data (a FluidSurrogate)') from None
+    except ValueError as exc:  # a surrogate refusing these parameters
+        raise ParameterError(str(exc)) from None
+    if family == 'dynamic':
+        return no_fluid_block, kernel, tuple(data), 2
+    return kernel, no_flows_block, tuple(data), 1
 
 
 def dt_to_ns(dt_s: float) -> int:
@@ -362,14 +392,13 @@ def dt_to_ns(dt_s: float) -> int:
     return dt_ns
 
 
-def check_dt(p: PlantParams, dt_s: float, surrogate: bool = False) -> None:
-    """Refuse a non-positive step or one beyond the stability limit (with a surrogate fluid
-    block the chamber-pressure bound does not apply)."""
+def check_dt(p: PlantParams, dt_s: float, fluid=None) -> None:
+    """Refuse a non-positive step or one beyond the stability limit, with the bound of what
+    a surrogate ``fluid`` feeds back in place of the chamber bound (:func:`stability_limits`)."""
     if not (dt_s > 0 and math.isfinite(dt_s)):
         raise ParameterError(f'dt_s = {dt_s} must be a positive number of seconds')
     dt_to_ns(dt_s)
-    limits = [x for x in stability_limits(p) if not (surrogate and x[1].startswith('chamber'))]
-    lim, block = min(limits, key=lambda x: x[0])
+    lim, block = stability_limit(p, fluid)
     if dt_s > lim:
         raise ParameterError(f'dt_s = {dt_s:g} s exceeds the stability limit {lim:.3g} s set '
                              f'by the {block}')
@@ -418,8 +447,10 @@ class Plant:
     def __init__(self, params: PlantParams | None = None, dt_s: float = 1e-6, seed: int = 0,
                  fluid=None):
         self.params = params if params is not None else default_params()
-        self.fluid_fn, self.fluid_data, self.use_fluid_fn = _fluid_args(fluid)
-        check_dt(self.params, dt_s, surrogate=self.use_fluid_fn)
+        self.fluid = fluid
+        (self.fluid_fn, self.flows_fn, self.fluid_data,
+         self.fluid_mode) = _fluid_args(fluid, self.params)
+        check_dt(self.params, dt_s, fluid)
         self.dt_s = float(dt_s)
         self.dt_ns = dt_to_ns(dt_s)
         self.seed = int(seed)
@@ -434,12 +465,14 @@ class Plant:
 
     def set_params(self, params: PlantParams):
         """Change parameters (wear, degradation) from the next step on."""
-        check_dt(params, self.dt_s, surrogate=self.use_fluid_fn)
+        data = _fluid_args(self.fluid, params)[2]  # a dynamic surrogate's data per wear
+        check_dt(params, self.dt_s, self.fluid)
         if (params.noise_std_a != self.params.noise_std_a
                 or params.noise_sample_time_s != self.params.noise_sample_time_s):
             raise ParameterError('noise_std_a and noise_sample_time_s cannot change during a '
                                  'run')
         self.params = params
+        self.fluid_data = data
 
     @property
     def time_ns(self) -> int:
@@ -461,7 +494,8 @@ class Plant:
                                   self.params, 0, _EMPTY_ARGS, _EMPTY, _EMPTY, noise,
                                   self.params.noise_sample_time_s, self.steps, self.dt_s,
                                   self.dt_ns, int(n_steps), 0, 1, _EMPTY.reshape(0, N_REC),
-                                  self.fluid_fn, self.fluid_data, self.use_fluid_fn)
+                                  self.fluid_fn, self.flows_fn, self.fluid_data,
+                                  self.fluid_mode)
         self.steps += done
         if status:
             raise _diverged(status, self.time_s)
@@ -532,8 +566,9 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
         Recording interval [s], a whole number of controller periods (default 0.1 ms, or the
         controller period if longer; ``None``: every controller tick).
     fluid : optional
-        A surrogate of the fluid-dynamic block: an object with ``kernel`` (numba function
-        ``kernel(data, xs_m, q_m3_s, overlap_m, clearance_m) -> p12_pa``) and ``data``; the
+        A surrogate of the fluid-dynamic block (:func:`eha_ros.surrogates.base.load_surrogate`):
+        algebraic, ``kernel(data, xs_m, q_m3_s, overlap_m, clearance_m) -> p12_pa``, or dynamic
+        (``family = 'dynamic'``), the metering-edge flows only (see ``_run``); the
         high-fidelity block when ``None``.
     """
     p = params if params is not None else default_params()
@@ -541,8 +576,8 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     duration = float(sc.duration_s if duration_s is None else duration_s)
     if not (duration > 0 and math.isfinite(duration)):
         raise ParameterError(f'duration_s = {duration_s} must be a positive number of seconds')
-    fluid_fn, fluid_data, use_fluid_fn = _fluid_args(fluid)
-    check_dt(p, dt_s, surrogate=use_fluid_fn)
+    fluid_fn, flows_fn, fluid_data, fluid_mode = _fluid_args(fluid, p)
+    check_dt(p, dt_s, fluid)
     period = dt_s if controller_period_s is None else float(controller_period_s)
     steps_per_tick = int(round(period / dt_s))
     if steps_per_tick < 1 or abs(steps_per_tick * dt_s - period) > 1e-9 * period:
@@ -565,8 +600,8 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     status, n_done, rows, i_last = _run(state, ctrl, 0.0, p, kind, args, com_t, com_v,
                                         samples, p.noise_sample_time_s, 0, dt_s,
                                         dt_to_ns(dt_s), n_steps,
-                                        steps_per_tick, rec_every, rec, fluid_fn, fluid_data,
-                                        use_fluid_fn)
+                                        steps_per_tick, rec_every, rec, fluid_fn, flows_fn,
+                                        fluid_data, fluid_mode)
     wall = time.perf_counter() - t0
     if status:
         raise _diverged(status, (n_done * dt_to_ns(dt_s)) * 1e-9)

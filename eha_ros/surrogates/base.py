@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 from pathlib import Path
 from typing import Callable
@@ -63,6 +64,37 @@ class FluidSurrogate:
     kernel: Callable
     data: tuple
     meta: dict
+
+    #: ``'algebraic'``: the kernel gives P12 (the reference's surrogates); ``'dynamic'``: it
+    #: gives chamber flows (:mod:`.dynamic`).
+    family = 'algebraic'
+
+    def prepare(self, p: PlantParams) -> tuple:
+        """The kernel's data for the parameters ``p`` (the artefact's arrays: an algebraic
+        surrogate reads the wear as kernel arguments)."""
+        return self.data
+
+    def stability_limit(self, p: PlantParams) -> tuple[float, str]:
+        """Largest stable step [s] of the jack under this surrogate's feedback.
+
+        The plant imposes ``Q = AJ dXJ/dt`` and the jack feels ``AJ P12(XS, Q)``: to first
+        order a damper ``AJ^2 |dP12/dQ|`` on the jack's mass, stable under the explicit step
+        for ``dt < 2 MJ / (AJ^2 |dP12/dQ|)``.  The slope is measured on the surrogate itself,
+        over the spool grid and the flows the loop reaches (twice the table's range).
+        """
+        from eha_ros.physics.maps import spool_grid
+        xs = spool_grid(67, p.spool_stroke_m)
+        q_max = 2.0 * float(self.meta.get('valid_range', {}).get('q_m3_s', [0, 6e-5])[1])
+        q = np.concatenate([np.linspace(-q_max, q_max, 81), np.linspace(-1e-7, 1e-7, 21)])
+        q = np.unique(q)
+        pr = self.p12(xs[:, None], q[None, :], p.overlap_supply_m, p.radial_clearance_m)
+        slope = float(np.max(np.abs(np.diff(pr, axis=1)) / np.diff(q)[None, :]))
+        aj = p.jack_area_m2
+        if not slope > 0:
+            return math.inf, f'surrogate {self.name} P12(Q) feedback (flat)'
+        return (2.0 * p.jack_mass_kg / (aj * aj * slope),
+                f'surrogate {self.name} P12(Q) feedback on the jack (|dP12/dQ| up to '
+                f'{slope:.3g} Pa s/m^3)')
 
     def p12(self, xs_m, q_m3_s, overlap_m, clearance_m):
         """P12 [Pa] for broadcastable inputs [m, m^3/s, m, m]."""
@@ -143,11 +175,14 @@ def load_surrogate(name: str, params: PlantParams | None = None,
     _import_kernels()
     if kind not in KERNELS:
         raise SurrogateError(f'{path}: unknown surrogate kind {kind!r}')
-    s = FluidSurrogate(name=name, kernel=KERNELS[kind], data=data, meta=meta)
+    cls = FluidSurrogate
+    if meta.get('family') == 'dynamic':
+        from .dynamic import DynamicSurrogate as cls
+    s = cls(name=name, kernel=KERNELS[kind], data=data, meta=meta)
     s.check_params(p)
     return s
 
 
 def _import_kernels():
     """Import the modules that register kernels (kept lazy to keep imports light)."""
-    from . import ga, lut, nn  # noqa: F401
+    from . import dynamic, ga, lut, nn  # noqa: F401

@@ -84,7 +84,7 @@ from .database import FLOW_MAX_M3_S, get_database, heldout_maps
 
 __all__ = ['XS_REF_M', 'Q_REF_M3_S', 'THESIS_INITIAL', 'THESIS_LB', 'THESIS_UB',
            'MIN_DENOMINATOR', 'GASettings', 'GAResult', 'formula', 'ga_kernel', 'make_ga',
-           'relative_error', 'min_denominators', 'genetic_fit', 'gradient_fit',
+           'relative_error', 'min_denominators', 'genetic_fit', 'evolve', 'gradient_fit',
            'nominal_offgrid_map', 'build_artefact']
 
 #: Spool-position scale [m]: ``wxs = XS / XS_REF_M``.
@@ -272,7 +272,6 @@ def genetic_fit(xs_m, q_m3_s, p12_pa, xs_max_m: float, settings: GASettings | No
     p = np.ravel(np.asarray(p12_pa, dtype=float))
     if not (xs.size == q.size == p.size) or xs.size == 0:
         raise SurrogateError('GA training points and values must have the same, non-zero size')
-    rng = np.random.default_rng(s.seed)
     t0 = time.perf_counter()
     zlb, zub, z0 = np.arcsinh(lb), np.arcsinh(ub), np.arcsinh(x0)
     free = zub > zlb
@@ -288,13 +287,33 @@ def genetic_fit(xs_m, q_m3_s, p12_pa, xs_max_m: float, settings: GASettings | No
         f[np.any(min_denominators(c, xs_max_m) < MIN_DENOMINATOR, axis=1)] = np.inf
         return f
 
+    z, err, history, evals = evolve(fitness, z0, zlb, zub, s)
+    return GAResult(coefficients=coefficients(z), error=err, history=history,
+                    evaluations=evals, wall_s=time.perf_counter() - t0)
+
+
+def evolve(fitness, z0, zlb, zub, s: GASettings):
+    """The real-coded genetic algorithm on genes ``z`` within ``[zlb, zub]`` (genes with
+    ``zlb == zub`` stay pinned): ``fitness(pop)`` gives one value per row (lower is better,
+    ``inf`` for an inadmissible individual).  First population: ``z0``, a Gaussian cloud around
+    it and a uniform share across the bounds; then per generation tournament selection, blend
+    crossover (BLX-alpha), Gaussian mutation with a geometrically shrinking step, ``elite``
+    survivors; stops after ``generations`` or ``stall_generations`` without a relative
+    improvement of 1e-6.  Randomness from ``numpy.random.default_rng(s.seed)``.
+
+    Returns ``(best genes, best fitness, best fitness per generation, evaluations)``.
+    """
+    rng = np.random.default_rng(s.seed)
+    z0, zlb, zub = (np.asarray(a, dtype=float) for a in (z0, zlb, zub))
+    dim = z0.size
+    free = zub > zlb
     # first population: x0, Gaussian cloud around it, uniform across the bounds
     n = s.population
     n_uni = int(round(s.init_uniform_fraction * (n - 1)))
-    pop = np.empty((n, 8))
+    pop = np.empty((n, dim))
     pop[0] = z0
-    pop[1:n - n_uni] = z0 + s.init_sigma * rng.standard_normal((n - 1 - n_uni, 8))
-    pop[n - n_uni:] = zlb + (zub - zlb) * rng.random((n_uni, 8))
+    pop[1:n - n_uni] = z0 + s.init_sigma * rng.standard_normal((n - 1 - n_uni, dim))
+    pop[n - n_uni:] = zlb + (zub - zlb) * rng.random((n_uni, dim))
     pop = np.clip(pop, zlb, zub)
     pop[:, ~free] = zlb[~free]
     fit = fitness(pop)
@@ -314,13 +333,13 @@ def genetic_fit(xs_m, q_m3_s, p12_pa, xs_max_m: float, settings: GASettings | No
         # blend crossover (BLX-alpha), gene by gene
         lo, hi = np.minimum(pa, pb), np.maximum(pa, pb)
         span = hi - lo
-        u = rng.random((n_child, 8))
+        u = rng.random((n_child, dim))
         child = lo - s.blend_alpha * span + u * (1.0 + 2.0 * s.blend_alpha) * span
         keep = rng.random(n_child) >= s.crossover_rate
         child[keep] = pa[keep]
         # Gaussian mutation, each free gene with probability mutation_rate
-        mut = (rng.random((n_child, 8)) < s.mutation_rate) & free
-        child = child + mut * (sigma * rng.standard_normal((n_child, 8)))
+        mut = (rng.random((n_child, dim)) < s.mutation_rate) & free
+        child = child + mut * (sigma * rng.standard_normal((n_child, dim)))
         child = np.clip(child, zlb, zub)
         child[:, ~free] = zlb[~free]
         child_fit = fitness(child)
@@ -333,9 +352,7 @@ def genetic_fit(xs_m, q_m3_s, p12_pa, xs_max_m: float, settings: GASettings | No
                 history[-1] >= history[-1 - s.stall_generations] * (1.0 - 1e-6)):
             break
     best = int(np.argmin(fit))
-    return GAResult(coefficients=coefficients(pop[best]), error=float(fit[best]),
-                    history=np.array(history), evaluations=evals,
-                    wall_s=time.perf_counter() - t0)
+    return pop[best].copy(), float(fit[best]), np.array(history), evals
 
 
 def gradient_fit(xs_m, q_m3_s, p12_pa, xs_max_m: float, x0=THESIS_INITIAL, lb=THESIS_LB,

@@ -54,9 +54,11 @@ __all__ = ['INPUT_NAMES', 'INPUT_UNITS', 'MAX_WIDTH', 'LINEAR', 'ASINH', 'mlp_ke
 INPUT_NAMES = ('xs_m', 'q_m3_s', 'overlap_m', 'clearance_m')
 INPUT_UNITS = ('m', 'm^3/s', 'm', 'm')
 
-#: Input transforms.
-LINEAR, ASINH = 0, 1
-_TRANSFORMS = {'linear': LINEAR, 'asinh': ASINH}
+#: Input transforms: ``x/scale``, ``asinh(x/scale)``, and ``asinh`` of the positive or the
+#: negative part of ``x/scale`` (two inputs that let a network represent a kink at x = 0).
+LINEAR, ASINH, ASINH_POS, ASINH_NEG = 0, 1, 2, 3
+_TRANSFORMS = {'linear': LINEAR, 'asinh': ASINH, 'asinh_pos': ASINH_POS,
+               'asinh_neg': ASINH_NEG}
 
 #: Widest layer the kernel evaluates (its stack buffer holds two layers).
 MAX_WIDTH = 128
@@ -111,8 +113,13 @@ def mlp_kernel(data, xs_m, q_m3_s, overlap_m, clearance_m):
         else:
             x = clearance_m
         g = x / inputs[i, 2]
-        if inputs[i, 1] == 1.0:
+        kind = inputs[i, 1]
+        if kind == 1.0:
             g = math.asinh(g)
+        elif kind == 2.0:
+            g = math.asinh(max(g, 0.0))
+        elif kind == 3.0:
+            g = math.asinh(max(-g, 0.0))
         buf[i] = (g - inputs[i, 3]) / inputs[i, 4]
     a = 0
     b = MAX_WIDTH
@@ -183,14 +190,21 @@ def pack(sizes, inputs, output, theta) -> tuple:
             np.ascontiguousarray(output, dtype=float), theta)
 
 
+def _transform(g, kind):
+    if kind == ASINH:
+        return np.arcsinh(g)
+    if kind == ASINH_POS:
+        return np.arcsinh(np.maximum(g, 0.0))
+    if kind == ASINH_NEG:
+        return np.arcsinh(np.maximum(-g, 0.0))
+    return g
+
+
 def transform_inputs(inputs, raw):
     """Normalised network inputs ``(N, n_in)`` from raw ``(N, 4)`` kernel inputs (numpy)."""
     z = np.empty((raw.shape[0], inputs.shape[0]))
     for i, (src, kind, scale, mid, half) in enumerate(inputs):
-        g = raw[:, int(src)] / scale
-        if kind == ASINH:
-            g = np.arcsinh(g)
-        z[:, i] = (g - mid) / half
+        z[:, i] = (_transform(raw[:, int(src)] / scale, kind) - mid) / half
     return z
 
 
@@ -234,9 +248,7 @@ def fit_inputs(raw, sources, transforms, scales=None) -> np.ndarray:
     for n, (src, tr) in enumerate(zip(sources, transforms)):
         kind = _TRANSFORMS[tr] if isinstance(tr, str) else int(tr)
         scale = 1.0 if scales is None or scales[n] is None else float(scales[n])
-        g = raw[:, src] / scale
-        if kind == ASINH:
-            g = np.arcsinh(g)
+        g = _transform(raw[:, src] / scale, kind)
         lo, hi = float(g.min()), float(g.max())
         half = 0.5 * (hi - lo) if hi > lo else 1.0
         rows.append([src, kind, scale, 0.5 * (hi + lo), half])

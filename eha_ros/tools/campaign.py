@@ -1,12 +1,20 @@
 """``eha-campaign`` (``make demo``): the reference's EHA test campaign through the ROS graph.
 
 Every scenario of the reference's section 6.3 (steps, ramps and sines of 0.1 and 0.01 mm) is
-run with the high-fidelity fluid block and with each shipped surrogate (ga, nn, lut), through
-the node graph in lockstep, each run recorded to MCAP by the ``recorder`` node.  Then the
-surrogate runs are compared with the hf run of the same scenario (relative Euclidean-norm error
-of jack position, P12 and spool position, as ``eha-compare``), the hf recordings are diagnosed
-offline (``eha-diagnose``), and a report is written: ``report.md`` with the comparison table and
-one folder of PNG plots per scenario (the reference's Figures 6.4-6.16).
+run through the node graph in lockstep with the high-fidelity fluid block and with the
+recommended surrogate plant (``dlut``, dynamic lookup table) - ``--models`` chooses - each run
+recorded to MCAP by the ``recorder`` node.  The recorded surrogate runs are compared with the hf
+run of the same scenario (relative Euclidean-norm error of jack position, P12 and spool
+position, as ``eha-compare``), the hf recordings are diagnosed offline (``eha-diagnose``), and a
+report is written: ``report.md`` and one folder of PNG plots per scenario (the reference's
+Figures 6.4-6.16).
+
+The surrogate comparison (``--compare-models``, default every shipped surrogate: the dynamic
+family and the reference's algebraic ``lut``, ``ga``, ``nn``, ``nn2``) is made physics-only
+(:mod:`eha_ros.surrogates.inloop`), where noise and perturbations can be controlled: noise off
+against the yardstick (hf at half the step and with the discharge coefficient +-0.1 %), and
+with noise over ``--seeds`` seeds against hf's own seed-to-seed spread; plots in
+``comparison/`` show the yardstick runs beside the models.
 
 The health monitor runs live in every run: its ``/eha/health`` and ``/diagnostics`` are
 recorded with the rest, and the report's verdicts are the recorded ones; each recording is
@@ -20,7 +28,8 @@ recorded; every estimate (clearance, overlap, demagnetisation, filter
 clogging, spool and jack friction, current offset) is read from the recordings against the
 truth.
 
-    eha-campaign [--out runs/campaign-<time>] [--scenarios a,b] [--models hf,ga,nn,lut]
+    eha-campaign [--out runs/campaign-<time>] [--scenarios a,b] [--models hf,dlut]
+                 [--compare-models dlut,dnn,dga,lut,ga,nn,nn2] [--seeds 5]
                  [--valve-tests nominal,worn] [--processes]
 
 Nothing existing is overwritten: the output folder must not exist.
@@ -35,7 +44,7 @@ import sys
 import time
 from pathlib import Path
 
-from eha_ros.graph import REFERENCE_MODELS, REFERENCE_SCENARIOS
+from eha_ros.graph import ALGEBRAIC_MODELS, DYNAMIC_MODELS, MODELS, REFERENCE_SCENARIOS
 from eha_ros.harness import GraphConfig, GraphError, run_graph
 from eha_ros.physics import ParameterError, get_scenario
 
@@ -59,9 +68,16 @@ def available_models(models):
     return [m for m in models if m == 'hf' or (models_dir() / f'{m}.npz').is_file()]
 
 
-def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=REFERENCE_MODELS,
+#: Models run through the graph by default: hf and the recommended surrogate plant.
+GRAPH_MODELS = ('hf', 'dlut')
+#: Models of the physics-only comparison: the dynamic family, then the reference's.
+COMPARE_MODELS = DYNAMIC_MODELS + ALGEBRAIC_MODELS
+
+
+def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=GRAPH_MODELS,
                  processes=False, progress=print, valve_tests=tuple(VALVES),
-                 valve_test_scenario='maintenance_test_quick') -> dict:
+                 valve_test_scenario='maintenance_test_quick', compare_models=COMPARE_MODELS,
+                 seeds: int = 3) -> dict:
     """Run, record, compare and report; returns the summary written to ``summary.json``."""
     from eha_ros.recording.compare import compare_runs, load_run, plot_runs
     from eha_ros.isolation import ros_environment
@@ -74,21 +90,31 @@ def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=REFERENCE_MODE
         get_scenario(sc)
     out.mkdir(parents=True)
     models = available_models(models)
+    # the physics-only comparison runs in its own process while the graph runs (it needs one
+    # core, the lockstep graph in one process about one)
+    compare = [m for m in available_models(compare_models) if m != 'hf']
+    comparer = _start_comparison(out / 'comparison', scenarios, compare, seeds) if compare \
+        else None
     # (scenario, label, fluid model, plant parameters): the campaign, then the valve tests
     jobs = ([(sc, model, model, {}) for sc in scenarios for model in models]
             + [(valve_test_scenario, valve, 'hf', VALVES[valve]) for valve in valve_tests])
     runs, t_start = {}, time.monotonic()
-    for k, (sc, label, model, plant) in enumerate(jobs, start=1):
-        path = out / f'{sc}_{label}.mcap'
-        with ros_environment() as env:
-            r = run_graph(GraphConfig(scenario=sc, model=model, mode='lockstep',
-                                      record=str(path), plant=dict(plant), health=True,
-                                      health_params={'update_period_s': HEALTH_PERIOD_S}),
-                          processes=processes, env=env, timeout_s=120)
-        runs[(sc, label)] = {'file': path.name, 'sim_s': r.sim_s, 'wall_s': round(r.wall_s, 2),
-                             'ticks': int(r.state['tick'].size)}
-        progress(f'[{k:2d}/{len(jobs)}] {sc:15s} {label:7s} {r.sim_s:5.2f} s simulated in '
-                 f'{r.wall_s:5.1f} s  -> {path.name}')
+    try:
+        for k, (sc, label, model, plant) in enumerate(jobs, start=1):
+            path = out / f'{sc}_{label}.mcap'
+            with ros_environment() as env:
+                r = run_graph(GraphConfig(scenario=sc, model=model, mode='lockstep',
+                                          record=str(path), plant=dict(plant), health=True,
+                                          health_params={'update_period_s': HEALTH_PERIOD_S}),
+                              processes=processes, env=env, timeout_s=120)
+            runs[(sc, label)] = {'file': path.name, 'sim_s': r.sim_s, 'wall_s': round(r.wall_s, 2),
+                                 'ticks': int(r.state['tick'].size)}
+            progress(f'[{k:2d}/{len(jobs)}] {sc:15s} {label:7s} {r.sim_s:5.2f} s simulated in '
+                     f'{r.wall_s:5.1f} s  -> {path.name}')
+    except BaseException:
+        if comparer is not None:
+            comparer.terminate()
+        raise
     from eha_ros.physics import load_params
     nominal = load_params()
     from eha_ros.surrogates.monitor import ITEMS
@@ -113,11 +139,13 @@ def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=REFERENCE_MODE
         plot_runs(loaded, out / sc)
         table[sc] = {r['label']: r['relative_error'] for r in result['runs']}
         diagnoses[sc] = diagnose(str(out / f'{sc}_hf.mcap'), update_s=HEALTH_PERIOD_S)
+    comparison = _finish_comparison(comparer, out / 'comparison') if comparer else {}
     summary = {'models': models, 'scenarios': list(scenarios),
                'wall_s': round(time.monotonic() - t_start, 1),
                'runs': {f'{s}/{m}': v for (s, m), v in runs.items()},
                'relative_error_vs_hf': table, 'diagnosis_hf': diagnoses,
-               'valve_test': valve_results, 'health_live': health}
+               'valve_test': valve_results, 'health_live': health,
+               'comparison': comparison}
     (out / 'summary.json').write_text(json.dumps(summary, indent=1))
     (out / 'report.md').write_text(_report(summary))
     return summary
@@ -135,16 +163,175 @@ def _health_verdict(path: Path, diagnose) -> dict:
             'live_messages': d.get('live_messages', 0), 'live_agrees': d.get('live_agrees')}
 
 
+def _start_comparison(folder: Path, scenarios, models, seeds):
+    """Start :func:`_compare` in a fresh process (spawned: it shares nothing with ROS)."""
+    import multiprocessing
+    folder.mkdir()
+    proc = multiprocessing.get_context('spawn').Process(
+        target=_compare_to_file, args=(str(folder), list(scenarios), list(models), int(seeds)),
+        name='eha-campaign-comparison')
+    proc.start()
+    return proc
+
+
+def _compare_to_file(folder, scenarios, models, seeds):
+    res = _compare(Path(folder), scenarios, models, seeds,
+                   lambda line: print(line, flush=True))
+    tmp = Path(folder) / 'comparison.json.partial'
+    tmp.write_text(json.dumps(res))
+    tmp.replace(Path(folder) / 'comparison.json')
+
+
+def _finish_comparison(proc, folder: Path) -> dict:
+    proc.join()
+    path = folder / 'comparison.json'
+    if proc.exitcode != 0 or not path.is_file():
+        raise RuntimeError(f'the physics-only comparison failed (exit code {proc.exitcode}); '
+                           f'the graph recordings in {folder.parent} are complete')
+    return json.loads(path.read_text())
+
+
+def _compare(folder: Path, scenarios, models, seeds, progress) -> dict:
+    """Physics-only comparison of ``models`` with hf (:mod:`eha_ros.surrogates.inloop`), noise
+    off against the yardstick and with noise over ``seeds`` seeds; one plot per scenario."""
+    if not models:
+        return {}
+    from eha_ros.physics import load_params
+    from eha_ros.physics.params import replace
+    from eha_ros.surrogates.base import load_surrogate
+    from eha_ros.surrogates.inloop import noise_free, summarise, with_noise
+    folder.mkdir(exist_ok=True)
+    base = load_params()
+    sur = {m: load_surrogate(m, base) for m in models}
+    p0 = replace(base, noise_std_a=0.0)
+    res = {'models': list(models), 'seeds': int(seeds), 'noise_free': {}, 'noise': {}}
+    t0 = time.monotonic()
+    for sc in scenarios:
+        r = noise_free(p0, sc, sur, keep_runs=True)
+        _plot_comparison(r.pop('runs'), folder / f'{sc}.png', sc, r)
+        res['noise_free'][sc] = r
+        if seeds > 0:
+            res['noise'][sc] = with_noise(base, sc, sur, seeds)
+        progress(f'comparison {sc:15s} {len(models)} models, noise off and {seeds} seeds, '
+                 f'{time.monotonic() - t0:5.1f} s')
+    res['summary'] = summarise(res)
+    return res
+
+
+def _plot_comparison(runs, path: Path, scenario, result) -> None:
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(2, 1, figsize=(9, 6.5), sharex=True)
+    for ax, key, scale, unit in ((axes[0], 'jack_position_m', 1e3, 'mm'),
+                                 (axes[1], 'p12_pa', 1e-6, 'MPa')):
+        hf = runs['hf']
+        first = True
+        for name, r in runs.items():
+            if name in ('half_step', 'cd_plus_0.1%', 'cd_minus_0.1%'):
+                ax.plot(r.t, r[key] * scale, color='0.6', lw=3, alpha=0.6,
+                        label='hf yardstick (dt/2, Cd +-0.1 %)' if first else None)
+                first = False
+        ax.plot(hf.t, hf[key] * scale, color='k', lw=1.2, label='hf')
+        for name, r in runs.items():
+            if name in ('hf', 'half_step', 'cd_plus_0.1%', 'cd_minus_0.1%') or '@' in name:
+                continue
+            ax.plot(r.t, r[key] * scale, lw=0.9, ls='-' if name in DYNAMIC_MODELS else '--',
+                    label=name)
+        ax.set_ylabel(f'{key.replace("_m", "").replace("_pa", "")} [{unit}]')
+        ax.grid(alpha=0.3)
+    axes[0].plot(runs['hf'].t, runs['hf']['command_m'] * 1e3, color='k', ls=':', lw=0.8,
+                 label='command')
+    axes[0].legend(fontsize=7, ncol=3)
+    axes[1].set_xlabel('time [s]')
+    y = result['yardstick']
+    fig.suptitle(f'{scenario}, noise off: yardstick jack {100 * y["jack"]:.2f} %, '
+                 f'P12 {100 * y["p12"]:.2f} %', fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _comparison_report(c) -> list:
+    if not c:
+        return []
+    models = c['models']
+    lines = ['## Surrogates in the loop (physics only)', '',
+             'Noise off, controller at 1 kHz, plant step 1 us. Relative Euclidean-norm error of '
+             'jack position / P12 against hf. Yardstick: the largest change of hf itself at '
+             'half the step or with the discharge coefficient +-0.1 % - a difference inside '
+             'it is not a model error. A model meets a case when jack <= max(1 %, 2 x '
+             'yardstick) and P12 <= max(5 %, 2 x yardstick) (marked `ok`). Dynamic surrogates '
+             '(metering edges learned, chambers and jack physical): '
+             + ', '.join(m for m in models if m in DYNAMIC_MODELS)
+             + '; the reference\'s algebraic P12(XS, Q) surrogates, kept as its reproduction: '
+             + ', '.join(m for m in models if m not in DYNAMIC_MODELS) + '.', '',
+             '| scenario | yardstick jack / P12 | ' + ' | '.join(models) + ' |',
+             '| --- | ---: |' + ' ---: |' * len(models)]
+    for sc, r in c['noise_free'].items():
+        y = r['yardstick']
+        cells = []
+        for m in models:
+            e = r['models'].get(m, {})
+            if 'error' in e or not e:
+                cells.append('failed')
+            else:
+                cells.append(f'{_pct(e["jack"])} / {_pct(e["p12"])}'
+                             + (' ok' if e['meets'] else ''))
+        lines.append(f'| {sc} | {_pct(y["jack"])} / {_pct(y["p12"])} | ' + ' | '.join(cells)
+                     + ' |')
+    if c['noise']:
+        lines += ['', f'With torque-motor noise: each model with seed k against hf with seed k, '
+                  f'mean over {c["seeds"]} seeds, beside hf\'s own seed-to-seed spread (hf seed '
+                  f'k against seed k+1); `ok`: within 1.5 x the spread (jack and P12). For '
+                  f'reference, hf with the discharge coefficient +0.1 % against hf, same seeds.',
+                  '',
+                  '| scenario | hf seed-to-seed jack / P12 | hf, Cd +0.1 %, same seed | '
+                  + ' | '.join(models) + ' |',
+                  '| --- | ---: | ---: |' + ' ---: |' * len(models)]
+        for sc, r in c['noise'].items():
+            h = r['hf_seed_to_seed']
+            hc = r['hf_cd_plus_0.1%_same_seed']
+            cells = [f'{_pct(hc["jack"])} / {_pct(hc["p12"])}']
+            for m in models:
+                e = r['models'].get(m, {})
+                cells.append('failed' if 'error' in e or not e else
+                             f'{_pct(e["jack"])} / {_pct(e["p12"])}' + (' ok' if e['meets']
+                                                                        else ''))
+            lines.append(f'| {sc} | {_pct(h["jack"])} / {_pct(h["p12"])} | '
+                         + ' | '.join(cells) + ' |')
+    lines += ['', 'Per model: noise-free cases meeting the bounds; cases whose features (RMS '
+              'tracking error, final position, number and mean size of stick-slip steps, P12 '
+              'RMS and peak) all lie within twice the yardstick\'s spread; noise scenarios '
+              'within 1.5 x the seed spread; median cost per simulated second against hf.', '',
+              '| model | bounds met | features within 2x spread | noise met | cost vs hf |',
+              '| --- | ---: | ---: | ---: | ---: |']
+    for m, r in c['summary'].items():
+        noise = (f'{r["noise_scenarios_meeting"]}/{r["noise_scenarios"]}'
+                 if 'noise_scenarios' in r else 'n/a')
+        cost = 'n/a' if r['median_cost_vs_hf'] is None else f'{r["median_cost_vs_hf"]:.2f}'
+        lines.append(f'| {m} | {r["cases_meeting_bounds"]}/{r["cases"]} | '
+                     f'{r["cases_all_features_within_2x_spread"]}/{r["cases"]} | {noise} | '
+                     f'{cost} |')
+    lines += ['', 'Plots: `comparison/<scenario>.png` (hf, the yardstick runs in grey, every '
+              'model).', '']
+    return lines
+
+
 def _report(s) -> str:
     surrogates = [m for m in s['models'] if m != 'hf']
-    lines = ['# EHA test campaign', '',
-             f'Scenarios of the reference (section 6.3) through the ROS 2 graph in lockstep, '
-             f'1 kHz, plant step 1 us; {len(s["runs"])} runs in {s["wall_s"]} s.', '',
-             'Relative Euclidean-norm error against the high-fidelity run, '
-             '`||x - x_hf|| / ||x_hf||`:', '',
-             '| scenario | ' + ' | '.join(f'{m}: jack | {m}: P12 | {m}: spool'
-                                          for m in surrogates) + ' |',
-             '| --- |' + ' ---: |' * (3 * len(surrogates))]
+    lines = ['# EHA test campaign', '']
+    lines += _comparison_report(s.get('comparison'))
+    lines += ['## Through the ROS 2 graph', '',
+              f'Scenarios of the reference (section 6.3) through the ROS 2 graph in lockstep, '
+              f'1 kHz, plant step 1 us, torque-motor noise on (seed 0); {len(s["runs"])} runs '
+              f'in {s["wall_s"]} s.', '',
+              'Relative Euclidean-norm error against the high-fidelity run, '
+              '`||x - x_hf|| / ||x_hf||` (with noise on; compare with hf\'s seed-to-seed '
+              'spread above):', '',
+              '| scenario | ' + ' | '.join(f'{m}: jack | {m}: P12 | {m}: spool'
+                                           for m in surrogates) + ' |',
+              '| --- |' + ' ---: |' * (3 * len(surrogates))]
     for sc, errs in s['relative_error_vs_hf'].items():
         cells = []
         for m in surrogates:
@@ -209,7 +396,12 @@ def main(argv=None) -> int:
     stamp = datetime.datetime.now().strftime('%Y%m%d-%H%M%S')
     ap.add_argument('--out', type=Path, default=Path('runs') / f'campaign-{stamp}')
     ap.add_argument('--scenarios', default=','.join(REFERENCE_SCENARIOS))
-    ap.add_argument('--models', default=','.join(REFERENCE_MODELS))
+    ap.add_argument('--models', default=','.join(GRAPH_MODELS),
+                    help='models run through the graph')
+    ap.add_argument('--compare-models', default=','.join(COMPARE_MODELS),
+                    help='surrogates of the physics-only comparison (empty: none)')
+    ap.add_argument('--seeds', type=int, default=3,
+                    help='noise seeds of the physics-only comparison (0: noise off only)')
     ap.add_argument('--valve-tests', default=','.join(VALVES),
                     help='valves given the diagnostic valve test (empty: none)')
     ap.add_argument('--processes', action='store_true',
@@ -219,15 +411,21 @@ def main(argv=None) -> int:
         print(f'eha-campaign: error: {args.out} exists: refusing to overwrite it',
               file=sys.stderr)
         return 2
-    unknown = [m for m in args.models.split(',') if m not in REFERENCE_MODELS]
+    compare = [m for m in args.compare_models.split(',') if m]
+    unknown = [m for m in args.models.split(',') + compare if m not in MODELS]
     if unknown:
         print(f'eha-campaign: error: unknown model {unknown[0]!r} '
-              f'(one of {", ".join(REFERENCE_MODELS)})', file=sys.stderr)
+              f'(one of {", ".join(MODELS)})', file=sys.stderr)
+        return 2
+    if args.seeds < 0:
+        print(f'eha-campaign: error: --seeds {args.seeds} must not be negative',
+              file=sys.stderr)
         return 2
     try:
         s = run_campaign(args.out, args.scenarios.split(','), args.models.split(','),
                          args.processes, progress=lambda line: print(line, flush=True),
-                         valve_tests=[v for v in args.valve_tests.split(',') if v])
+                         valve_tests=[v for v in args.valve_tests.split(',') if v],
+                         compare_models=compare, seeds=args.seeds)
     except (ParameterError, GraphError) as exc:
         print(f'eha-campaign: error: {exc}', file=sys.stderr)
         return 2

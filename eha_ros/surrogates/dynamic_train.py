@@ -1,0 +1,378 @@
+"""Build the dynamic surrogates of :mod:`.dynamic` (``dlut``, ``dnn``, ``dga``) from the hf
+model's edge equations, and measure them.
+
+Every member learns the edge law ``G(s, |dp|, c)`` (secant conductance) over the validity of
+:func:`.dynamic.valid_range`.  Training points come from :func:`.dynamic.edge_flows`, i.e.
+from :mod:`eha_ros.physics.valve` itself, so there is no transient and no map volume.
+
+Error metric
+    Relative flow error of one edge, ``|q_fit - q| / |q|`` (= ``|G_fit / G - 1|``), on fresh
+    random points (``edge_errors``) and of the chamber flows against
+    :func:`eha_ros.physics.valve.valve_flows` (``chamber_errors``, relative to the chamber's
+    largest flow at that spool position, since a chamber flow crosses zero at its balance
+    pressure).
+
+Build: ``python -m eha_ros.surrogates.dynamic_train [dlut dga dnn]`` (about 1, 1 and 5 minutes
+on two cores); ``bench/surrogates_dynamic.py`` prints the figures.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from eha_ros.physics import PlantParams, default_params
+
+from .base import load_surrogate, models_dir, save_artefact
+from .dynamic import (DP_MAX_PA, EDGE_PARAMETERS, GA_GENES, edge_conductance, edge_flows,
+                      edge_hash, valid_range)
+from .lut import axis_tables
+from .nn import fit_inputs, fit_output, pack, transform_inputs
+
+__all__ = ['DLUT_GRID', 'DNN_SETTINGS', 'DGA_SETTINGS', 'sample_points', 'edge_errors',
+           'chamber_errors', 'build_dlut', 'build_dnn', 'build_dga', 'build_all']
+
+#: Table of ``dlut``: openings ``S sinh(a u) / sinh(a)`` (odd count, node at 0 where the edge
+#: uncovers), ``sqrt|dp|`` as ``V sinh(a u) / sinh(a)`` over [0, sqrt(DP_MAX_PA)], clearance
+#: log-spaced over its range.
+DLUT_GRID = {'n_s': 301, 's_density': 5.0, 'n_v': 161, 'v_density': 6.0, 'n_c': 8}
+
+#: Network of ``dnn``.
+DNN_SETTINGS = {
+    'hidden': [16, 16], 'n_train': 60000, 'n_val': 10000, 'seed': 0,
+    's_scale_m': 1e-6, 'dp_scale_pa': 1e3, 'c_scale_m': 1e-9,
+    'algorithm': 'lm',
+    'lm': {'epochs': 600, 'subsample': 15000, 'resample_every': 25, 'max_fail': 100,
+           'time_limit_s': 1800.0},
+}
+
+#: Genetic algorithm of ``dga`` (genes ``asinh`` of the log-scaled coefficients, see
+#: :func:`_ga_genes`).
+DGA_SETTINGS = {'n_train': 20000, 'seed': 7, 'population': 80, 'generations': 1000,
+                'stall_generations': 100}
+
+
+def _s_max(p: PlantParams) -> float:
+    o = valid_range(p)['opening_m']
+    return max(abs(o[0]), abs(o[1]))
+
+
+def sample_points(n: int, rng: np.random.Generator, p: PlantParams):
+    """``n`` random edge inputs over the validity: openings half uniform over the range, half
+    within 20 um of the edge (where the loop's small signals live); ``|dp|`` half log-uniform
+    over [1 Pa, DP_MAX_PA], half uniform; clearance log-uniform.  Returns ``(s, dp, c)``."""
+    s_max = _s_max(p)
+    h = n // 2
+    s = np.concatenate([rng.uniform(-s_max, s_max, h), rng.uniform(-20e-6, 20e-6, n - h)])
+    dp = np.concatenate([np.exp(rng.uniform(0.0, math.log(DP_MAX_PA), h)),
+                         rng.uniform(0.0, DP_MAX_PA, n - h)])
+    lo, hi = valid_range(p)['radial_clearance_m']
+    c = np.exp(rng.uniform(math.log(lo), math.log(hi), n))
+    perm = rng.permutation(n)
+    return s[perm], dp[perm], c
+
+
+def edge_errors(surrogate, n: int = 20000, seed: int = 1, params: PlantParams | None = None):
+    """Relative edge-flow errors ``|q_fit / q - 1|`` of a dynamic surrogate on fresh random
+    points (:func:`sample_points`), as mean / p99 / max."""
+    from eha_ros.physics.params import replace
+    p = params if params is not None else default_params()
+    s, dp, c = sample_points(n, np.random.default_rng(seed), p)
+    out = np.empty(n)
+    # clearance per point: 40 groups, each at its median clearance (prepare folds c in)
+    order = np.argsort(c)
+    for chunk in np.array_split(order, 40):
+        cc = float(np.median(c[chunk]))
+        q = surrogate.edge_flow(s[chunk], dp[chunk], replace(p, radial_clearance_m=cc))
+        q_true = edge_flows(s[chunk], dp[chunk], cc, p)
+        out[chunk] = np.abs(q / q_true - 1.0)
+    return {'mean': float(out.mean()), 'p99': float(np.quantile(out, 0.99)),
+            'max': float(out.max()), 'n': int(n)}
+
+
+def chamber_errors(surrogate, params: PlantParams | None = None, wear=None, n_xs: int = 61,
+                   n_p: int = 61) -> dict:
+    """Chamber-flow error against hf's ``valve_flows`` on a grid of spool positions x chamber
+    pressures (vapour pressure to 1.2 x supply), relative to the largest |flow| at each spool
+    position; per wear pair ``(overlap, clearance)`` (default: nominal and two off-grid
+    points).  Returns max and RMS per wear pair."""
+    from eha_ros.physics.maps import spool_grid
+    from eha_ros.physics.params import replace
+
+    from .dynamic import chamber_flows
+    p = params if params is not None else default_params()
+    wear = wear if wear is not None else [(p.overlap_supply_m, p.radial_clearance_m),
+                                         (-1.3e-6, 1.7e-6), (4.1e-6, 4.6e-6)]
+    xs = spool_grid(n_xs, p.spool_stroke_m)
+    pp = np.linspace(p.vapour_pressure_pa, 1.2 * p.supply_pressure_pa, n_p)
+    out = {}
+    for lap, clr in wear:
+        pw = replace(p, overlap_supply_m=lap, overlap_return_m=lap, radial_clearance_m=clr)
+        q = surrogate.chamber_flow(xs[:, None], pp[None, :], pw)
+        q1, _ = chamber_flows(xs[:, None], pp[None, :], pp[None, :], pw)
+        scale = np.max(np.abs(q1), axis=1, keepdims=True)
+        e = np.abs(q - q1) / scale
+        out[f'overlap={lap:.3g},clearance={clr:.3g}'] = {'max': float(e.max()),
+                                                         'rms': float(np.sqrt(np.mean(e ** 2)))}
+    return out
+
+
+def _meta(kind: str, p: PlantParams, extra: dict) -> dict:
+    meta = {
+        'kind': kind, 'format': 1, 'family': 'dynamic',
+        'inputs': [{'name': 'xs_m', 'unit': 'm'}, {'name': 'p_pa', 'unit': 'Pa'},
+                   {'name': 'overlap_supply_m', 'unit': 'm'},
+                   {'name': 'overlap_return_m', 'unit': 'm'},
+                   {'name': 'radial_clearance_m', 'unit': 'm', 'note': 'folded in by prepare'}],
+        'output': {'name': 'q_in_m3_s', 'unit': 'm^3/s',
+                   'meaning': 'net flow into the chamber fed by the supply edge at '
+                              'xs - overlap_supply (Q1L(XS, P1); Q2L = -f(-XS, P2))'},
+        'learned': 'edge law q(s, dp; c) = dp G(s, |dp|, c), s = opening [m], dp [Pa], '
+                   'c = radial clearance [m]; training data from eha_ros.physics.valve '
+                   '(edge_coefficients, orifice_flow)',
+        'valid_range': valid_range(p),
+        'outside_range': 'wear or stroke outside: refused by prepare (SurrogateError); '
+                         '|dp| > dp_pa[1]: edge conductance held at the edge of the range',
+        'edge_parameters': list(EDGE_PARAMETERS),
+        'edge_hash': edge_hash(p),
+        'reproduction_of_reference': False,
+    }
+    meta.update(extra)
+    return meta
+
+
+# --- dlut ---------------------------------------------------------------------------------------
+
+def _sinh_axis(n, span, density, symmetric):
+    u = np.linspace(-1.0, 1.0, n) if symmetric else np.linspace(0.0, 1.0, n)
+    x = span * np.sinh(density * u) / math.sinh(density)
+    if symmetric:
+        x = 0.5 * (x - x[::-1])
+        x[n // 2] = 0.0
+    return x
+
+
+def build_dlut(params: PlantParams | None = None, grid: dict | None = None):
+    """``(data, meta)`` of the table ``ln G[s, v, ln c]`` (float32)."""
+    p = params if params is not None else default_params()
+    g = dict(DLUT_GRID, **(grid or {}))
+    t0 = time.perf_counter()
+    s_axis = _sinh_axis(g['n_s'], _s_max(p), g['s_density'], True)
+    v_axis = _sinh_axis(g['n_v'], math.sqrt(DP_MAX_PA), g['v_density'], False)
+    lo, hi = valid_range(p)['radial_clearance_m']
+    ln_c = np.linspace(math.log(lo), math.log(hi), g['n_c'])
+    G = edge_conductance(s_axis[:, None, None], v_axis[None, :, None] ** 2,
+                         np.exp(ln_c)[None, None, :], p)
+    ln_g = np.log(G).astype(np.float32)
+    s_aux, s_index = axis_tables(s_axis)
+    v_aux, v_index = axis_tables(v_axis)
+    data = (s_axis, s_aux, s_index, v_axis, v_aux, v_index, ln_c, ln_g)
+    meta = _meta('dlut', p, {
+        'table': {'shape': list(ln_g.shape), 'dtype': 'float32', 'grid': g,
+                  'axes': 'data_0 openings s [m] (sinh spacing, node at 0), data_3 '
+                          'v = sqrt|dp| [Pa^0.5] (sinh spacing), data_6 ln(clearance / m), '
+                          'data_7 ln(G / (m^3/(s Pa)))',
+                  'interpolation': 'clearance: power law between neighbouring nodes (linear '
+                                   'in ln G over ln c), once per wear; per step: bilinear in '
+                                   '(s, v) of K = G v, q = sign(dp) v K'},
+        'build_s': round(time.perf_counter() - t0, 2),
+    })
+    return data, meta
+
+
+# --- dga ----------------------------------------------------------------------------------------
+
+def _hf_coefficients(p: PlantParams):
+    """The hf model's values of the closed form's genes (for the record, never a start)."""
+    from eha_ros.physics.valve import edge_constants
+    vc = edge_constants(1.0, 0.0, 0.0, p.port_width_m,
+                        p.discharge_coefficient * (1.0 - p.valve_degradation),
+                        p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s,
+                        p.fluid_density_kg_m3, p.eccentricity_ratio, p.critical_flow_number,
+                        p.cd_model == 0.0)
+    return np.array([vc[1], 3.0, vc[2], vc[3]])
+
+
+#: Gene bounds: decades of the three coefficients around their textbook scales, and the
+#: clearance exponent of the laminar term (between the orifice's 1 and beyond the slit's 3).
+_LOG_LB = np.array([-2.0, 1.0, -2.0, -6.0])
+_LOG_UB = np.array([6.0, 4.0, 6.0, 6.0])
+
+
+def _scales(p: PlantParams):
+    """Order-of-magnitude scales of the coefficients from textbook values (laminar slit
+    ``12 mu / w``, orifice ``2 rho / (0.6^2 w^2)``, ``mu^2 100^2 / (16 0.6^2 w^2)``): the GA
+    searches decades around them, so it is told units, not answers."""
+    w = p.port_width_m
+    mu = p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s
+    return np.array([12.0 * mu / w, 1.0, 2.0 * p.fluid_density_kg_m3 / (0.36 * w * w),
+                     mu * mu * 1e4 / (16.0 * 0.36 * w * w)])
+
+
+def _genes_to_coefficients(z, scales):
+    c = np.array(z, dtype=float, copy=True)
+    c[..., [0, 2, 3]] = scales[[0, 2, 3]] * 10.0 ** z[..., [0, 2, 3]]
+    return c
+
+
+def _ga_log_errors(coeffs, s, dp, c, ln_g_true):
+    """``ln G_fit - ln G`` per point for one coefficient set (vectorised numpy)."""
+    k_lam, n_lam, k_turb, k_rey = coeffs
+    sp = np.maximum(s, 0.0)
+    rl = k_lam / c ** n_lam * np.maximum(-s, 0.0)
+    gg = 1.0 / (c * c + sp * sp)
+    den = rl + np.sqrt(rl * rl + k_rey * gg * gg + k_turb * gg * np.abs(dp))
+    return np.log(2.0 / den) - ln_g_true
+
+
+def build_dga(params: PlantParams | None = None, settings: dict | None = None):
+    """Fit the closed form of :func:`.dynamic.ga_edge_flow` by the genetic algorithm on the
+    RMS of ``ln G_fit - ln G`` (the relative flow error, uniform over the decades of flow
+    from a covered edge to full stroke: the reference's absolute P12 error let the large
+    values dominate), then refit by ``scipy.optimize.least_squares`` from the GA's best for
+    comparison; ships the GA's coefficients.  Returns ``(data, meta)``."""
+    from scipy.optimize import least_squares
+
+    from .ga import GASettings, evolve
+    p = params if params is not None else default_params()
+    st = dict(DGA_SETTINGS, **(settings or {}))
+    rng = np.random.default_rng(st['seed'])
+    s, dp, c = sample_points(st['n_train'], rng, p)
+    ln_g = np.log(edge_conductance(s, dp, c, p))
+    sv, dv, cv = sample_points(st['n_train'], np.random.default_rng(st['seed'] + 1), p)
+    ln_gv = np.log(edge_conductance(sv, dv, cv, p))
+    scales = _scales(p)
+
+    def fitness(pop):
+        out = np.empty(pop.shape[0])
+        for k, z in enumerate(pop):
+            with np.errstate(all='ignore'):
+                r = _ga_log_errors(_genes_to_coefficients(z, scales), s, dp, c, ln_g)
+            out[k] = math.sqrt(float(np.mean(r * r))) if np.all(np.isfinite(r)) else np.inf
+        return out
+
+    gs = GASettings(population=st['population'], generations=st['generations'],
+                    stall_generations=st['stall_generations'], seed=st['seed'])
+    z0 = 0.5 * (_LOG_LB + _LOG_UB)
+    t0 = time.perf_counter()
+    z, err, hist, evals = evolve(fitness, z0, _LOG_LB, _LOG_UB, gs)
+    ga_s = time.perf_counter() - t0
+    coeff = _genes_to_coefficients(z, scales)
+
+    def rms(cf, a, b, cc, lg):
+        r = _ga_log_errors(cf, a, b, cc, lg)
+        return {'rms_relative': float(np.sqrt(np.mean(r ** 2))),
+                'max_relative': float(np.max(np.abs(np.expm1(r))))}
+
+    t0 = time.perf_counter()
+    lsq = least_squares(lambda zz: _ga_log_errors(_genes_to_coefficients(zz, scales), s, dp, c,
+                                                  ln_g),
+                        z, bounds=(_LOG_LB, _LOG_UB), x_scale='jac', max_nfev=500)
+    grad_s = time.perf_counter() - t0
+    coeff_grad = _genes_to_coefficients(lsq.x, scales)
+    data = (coeff,)
+    meta = _meta('dga', p, {
+        'form': 'q = 2 dp / (RL + sqrt(RL^2 + B + R4 |dp|)), RL = k_lam max(-s,0) / c^n_lam, '
+                'R4 = k_turb / h^2, B = k_rey / h^4, h^2 = c^2 + max(s,0)^2',
+        'genes': list(GA_GENES), 'coefficients': coeff.tolist(),
+        'objective': 'RMS of ln(G_fit / G) over random edge inputs (relative flow error)',
+        'ga': {'settings': st, 'evaluations': int(evals), 'generations': int(hist.size - 1),
+               'time_s': round(ga_s, 1), 'train': rms(coeff, s, dp, c, ln_g),
+               'validation': rms(coeff, sv, dv, cv, ln_gv)},
+        'gradient_fit': {'method': 'scipy.optimize.least_squares (trust region reflective) '
+                                   'from the GA best, same objective',
+                         'coefficients': coeff_grad.tolist(), 'nfev': int(lsq.nfev),
+                         'time_s': round(grad_s, 1),
+                         'train': rms(coeff_grad, s, dp, c, ln_g),
+                         'validation': rms(coeff_grad, sv, dv, cv, ln_gv)},
+        'hf_values': {'coefficients': _hf_coefficients(p).tolist(),
+                      'note': 'the hf model is this form with these values (for the record: '
+                              'the fit starts from the middle of the gene bounds)'},
+    })
+    return data, meta
+
+
+# --- dnn ----------------------------------------------------------------------------------------
+
+def build_dnn(params: PlantParams | None = None, settings: dict | None = None,
+              threads: int = 2, verbose: bool = False):
+    """Train the edge network ``(asinh(s+/s0), asinh(s-/s0), asinh(|dp|/dp0), asinh(c/c0))
+    -> ln G`` (tanh, ``s+``/``s-`` the open/covered parts of the opening,
+    :func:`.training.fit_network`); returns ``(data, meta)``."""
+    from .training import fit_network
+    p = params if params is not None else default_params()
+    st = dict(DNN_SETTINGS, **(settings or {}))
+    rng = np.random.default_rng(st['seed'])
+
+    def raw(n):
+        s, dp, c = sample_points(n, rng, p)
+        return np.stack([s, dp, c, np.zeros(n)], axis=1), np.log(edge_conductance(s, dp, c, p))
+
+    raw_tr, y_tr = raw(st['n_train'])
+    raw_va, y_va = raw(st['n_val'])
+    inputs = fit_inputs(raw_tr, [0, 0, 1, 2], ['asinh_pos', 'asinh_neg', 'asinh', 'asinh'],
+                        [st['s_scale_m'], st['s_scale_m'], st['dp_scale_pa'], st['c_scale_m']])
+    output = fit_output(y_tr)
+    alg = st['algorithm']
+    model, hist, wall = fit_network(
+        transform_inputs(inputs, raw_tr), (y_tr - output[0]) / output[1],
+        transform_inputs(inputs, raw_va), (y_va - output[0]) / output[1],
+        hidden=st['hidden'], algorithm=alg, seed=st['seed'], settings=st[alg],
+        threads=threads)
+    data = pack(model.sizes, inputs, output, model.theta.detach().numpy())
+    meta = _meta('dnn', p, {
+        'architecture': {'d_in': 4, 'd_hidden': st['hidden'], 'd_out': 1, 'activation': 'tanh',
+                         'output_activation': 'linear',
+                         'n_weights': int(data[3].size)},
+        'network_inputs': [
+            {'name': 'opening_m', 'transform': f'asinh(max(s, 0) / {st["s_scale_m"]:g})'},
+            {'name': 'opening_m', 'transform': f'asinh(max(-s, 0) / {st["s_scale_m"]:g}) '
+                                               '(open and covered parts: the kink at s = 0)'},
+            {'name': 'abs_dp_pa', 'transform': f'asinh(|dp| / {st["dp_scale_pa"]:g})'},
+            {'name': 'clearance_m', 'transform': f'asinh(c / {st["c_scale_m"]:g}) (~ ln)'}],
+        'normalisation': 'z = (transform(x) - mid) / half, min-max to [-1, 1] on the training '
+                         'split (data_1 rows [source, transform, scale, mid, half]); '
+                         'ln G = mid + half y (data_2)',
+        'network_output': 'ln G, G = q / dp [m^3/(s Pa)]',
+        'training': {'algorithm': alg, 'settings': st[alg], 'seed': st['seed'],
+                     'n_train': st['n_train'], 'n_val': st['n_val'],
+                     'loss': 'mean squared error of the normalised ln G',
+                     'time_s': round(wall, 1), 'threads': threads,
+                     'stop': hist.get('stop'), 'epochs': hist.get('epochs')},
+    })
+    if verbose:
+        print(json.dumps({'dnn_training': meta['training']}), flush=True)
+    return data, meta
+
+
+BUILDERS = {'dlut': build_dlut, 'dga': build_dga, 'dnn': build_dnn}
+
+
+def build_all(names=('dlut', 'dga', 'dnn'), params: PlantParams | None = None,
+              out_dir: Path | None = None, verbose: bool = False) -> list[Path]:
+    """Build, measure (edge and chamber errors into the meta) and save the artefacts."""
+    p = params if params is not None else default_params()
+    out = Path(out_dir) if out_dir is not None else models_dir()
+    paths = []
+    for name in names:
+        data, meta = BUILDERS[name](p)
+        path = out / f'{name}.npz'
+        save_artefact(path, data, meta)
+        s = load_surrogate(name, p, path=path)
+        meta['errors'] = {'edge_flow_relative': edge_errors(s, params=p),
+                          'chamber_flow_relative_to_max': chamber_errors(s, p)}
+        save_artefact(path, data, meta)
+        if verbose:
+            print(json.dumps({name: meta['errors']}), flush=True)
+        paths.append(path)
+    return paths
+
+
+if __name__ == '__main__':
+    for _p in build_all(tuple(sys.argv[1:]) or ('dlut', 'dga', 'dnn'), verbose=True):
+        print(_p)

@@ -1,0 +1,194 @@
+"""Surrogates in the closed loop against the high-fidelity (hf) plant, judged against hf's own
+sensitivity (the yardstick): the measurement behind ``bench/inloop.py`` and the comparison part
+of ``eha-campaign``.  Physics only (:func:`eha_ros.physics.simulate`), controller at 1 kHz,
+every tick recorded.
+
+Noise-free (torque-motor noise off, so differences are model differences), per case = scenario
+x wear point (:func:`noise_free`):
+
+* ``jack`` / ``p12``: relative Euclidean-norm error (:func:`.base.relative_error`) of the jack
+  position / load pressure against hf at dt = 1 us;
+* ``yardstick``: the largest change of hf itself under perturbations no surrogate could
+  resolve: hf at half the step (0.5 us) and hf with the discharge coefficient +-0.1 %;
+* bounds: ``jack <= max(1 %, 2 x yardstick)`` and ``p12 <= max(5 %, 2 x yardstick)``;
+* features a user reads off the plots (:func:`features`), each model's deviation from hf
+  beside the yardstick's spread (the largest deviation of the perturbed hf runs).
+
+With noise (:func:`with_noise`): each model with seed k against hf with seed k, averaged over
+the seeds, beside hf's seed-to-seed spread (hf seed k against hf seed k+1, averaged); goal:
+model error <= 1.5 x spread.
+
+Cost: wall seconds per simulated second of every run against hf's.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from eha_ros.graph import DYNAMIC_MODELS
+from eha_ros.physics import simulate
+from eha_ros.physics.params import replace
+
+from .base import relative_error
+
+#: The cases beyond the reference's nine: a large signal and a chirp.
+EXTRA_SCENARIOS = ('step_1mm', 'chirp_0p1')
+#: Wear points (overlap, clearance) [m]: nominal and two off the grids of every table (the
+#: algebraic tables' DB1 grid, 2 um / 1.25 um steps; the dynamic table's log-spaced clearance).
+WEAR = {'nominal': None, 'worn_a': (3.1e-6, 3.9e-6), 'worn_b': (-0.7e-6, 1.6e-6)}
+CONTROLLER_PERIOD_S = 1e-3
+DT_S = 1e-6
+#: Jack displacement per controller tick [m] below which the jack counts as stuck (1 nm per
+#: ms = 1 um/s; the sensor quantum is 1 um).
+STUCK_M = 1e-9
+
+
+def features(r) -> dict:
+    """What a user reads off the plots of a run (``r`` a :class:`SimResult` recorded every
+    tick).
+
+    ``rms_tracking_error_m``: RMS of command minus jack position (the loop's accuracy);
+    ``final_position_m``: jack position at the end (where a small command leaves it, within
+    the friction band); ``stick_slip_steps``: number of motion episodes (runs of ticks in which
+    the jack moves more than :data:`STUCK_M`) - a jerky small-signal response is a sequence of
+    them; ``mean_step_m``: mean displacement per episode; ``p12_rms_pa``, ``p12_peak_pa``: RMS
+    and largest magnitude of the load pressure (the force the jack makes).
+    """
+    x = r['jack_position_m']
+    moving = np.abs(np.diff(x)) > STUCK_M
+    starts = np.flatnonzero(moving & ~np.concatenate([[False], moving[:-1]]))
+    ends = np.flatnonzero(moving & ~np.concatenate([moving[1:], [False]]))
+    steps = np.abs(x[ends + 1] - x[starts]) if starts.size else np.zeros(0)
+    p12 = r['p12_pa']
+    return {'rms_tracking_error_m': float(np.sqrt(np.mean((r['command_m'] - x) ** 2))),
+            'final_position_m': float(x[-1]),
+            'stick_slip_steps': int(starts.size),
+            'mean_step_m': float(steps.mean()) if steps.size else 0.0,
+            'p12_rms_pa': float(np.sqrt(np.mean(p12 ** 2))),
+            'p12_peak_pa': float(np.max(np.abs(p12)))}
+
+
+def run(p, scenario, fluid=None, dt=DT_S, seed=0):
+    """One closed-loop run as the comparison makes it (controller 1 kHz, every tick)."""
+    return simulate(p, scenario, dt_s=dt, seed=seed, controller_period_s=CONTROLLER_PERIOD_S,
+                    record_dt_s=None, fluid=fluid)
+
+
+def _errors(r, ref) -> dict:
+    return {'jack': relative_error(r['jack_position_m'], ref['jack_position_m']),
+            'p12': relative_error(r['p12_pa'], ref['p12_pa'])}
+
+
+def _cost(r) -> float:
+    return r.wall_time_s / float(r.t[-1])
+
+
+def noise_free(p, scenario, surrogates, large_dt=0.0, keep_runs=False):
+    """One case: hf, the yardstick runs and every surrogate (``{name: surrogate}``), at the
+    parameters ``p`` (noise should be off); the dynamic surrogates also at ``large_dt``
+    (0: not).  With ``keep_runs`` the :class:`SimResult` objects are returned under
+    ``'runs'`` (for plots)."""
+    ref = run(p, scenario)
+    pert = {'half_step': run(p, scenario, dt=0.5 * DT_S),
+            'cd_plus_0.1%': run(replace(p, discharge_coefficient=p.discharge_coefficient
+                                          * 1.001), scenario),
+            'cd_minus_0.1%': run(replace(p, discharge_coefficient=p.discharge_coefficient
+                                           * 0.999), scenario)}
+    f_ref = features(ref)
+    yard = {k: _errors(r, ref) for k, r in pert.items()}
+    yard_jack = max(v['jack'] for v in yard.values())
+    yard_p12 = max(v['p12'] for v in yard.values())
+    f_pert = {k: features(r) for k, r in pert.items()}
+    spread = {f: max(abs(fp[f] - f_ref[f]) for fp in f_pert.values()) for f in f_ref}
+    out = {'yardstick': {'jack': yard_jack, 'p12': yard_p12, 'runs': yard},
+           'bound': {'jack': max(0.01, 2 * yard_jack), 'p12': max(0.05, 2 * yard_p12)},
+           'hf_features': f_ref, 'feature_spread': spread,
+           'hf_cost_s_per_s': _cost(ref), 'models': {}}
+    kept = {'hf': ref, **pert}
+    for name, s in surrogates.items():
+        runs = {'dt=1e-06': None}
+        if name in DYNAMIC_MODELS and large_dt:
+            runs[f'dt={large_dt:g}'] = large_dt
+        for label, dt in runs.items():
+            key = name if dt is None else f'{name}@{label}'
+            try:
+                r = run(p, scenario, s, dt=dt or DT_S)
+            except Exception as exc:  # a diverging or refused run is a result too
+                out['models'][key] = {'error': f'{type(exc).__name__}: {exc}'}
+                continue
+            kept[key] = r
+            e = _errors(r, ref)
+            f = features(r)
+            dev = {k: abs(f[k] - f_ref[k]) for k in f}
+            out['models'][key] = {
+                'jack': e['jack'], 'p12': e['p12'],
+                'meets': bool(e['jack'] <= out['bound']['jack']
+                              and e['p12'] <= out['bound']['p12']),
+                'features': f, 'feature_deviation': dev,
+                'features_within_spread': {k: bool(dev[k] <= spread[k] * (1 + 1e-9))
+                                           for k in dev},
+                'features_within_2x_spread': {k: bool(dev[k] <= 2 * spread[k] + 1e-30)
+                                              for k in dev},
+                'cost_s_per_s': _cost(r)}
+    if keep_runs:
+        out['runs'] = kept
+    return out
+
+
+def with_noise(p, scenario, surrogates, seeds=5):
+    """hf's seed-to-seed spread and each model's error against hf with the same seed, at the
+    parameters ``p`` (noise on), seeds ``0 .. seeds - 1`` (hf also ``seeds``).  For reference
+    also hf with the discharge coefficient +0.1 % against hf, same seeds: how far a
+    perturbation no model could resolve moves hf under the same noise."""
+    pn = p
+    hf = [run(pn, scenario, seed=k) for k in range(seeds + 1)]
+    spread = [_errors(hf[k + 1], hf[k]) for k in range(seeds)]
+    pc = replace(pn, discharge_coefficient=pn.discharge_coefficient * 1.001)
+    same = [_errors(run(pc, scenario, seed=k), hf[k]) for k in range(seeds)]
+    out = {'hf_seed_to_seed': {q: float(np.mean([e[q] for e in spread])) for q in ('jack', 'p12')},
+           'hf_cd_plus_0.1%_same_seed': {q: float(np.mean([e[q] for e in same]))
+                                         for q in ('jack', 'p12')},
+           'models': {}}
+    for name, s in surrogates.items():
+        try:
+            errs = [_errors(run(pn, scenario, s, seed=k), hf[k]) for k in range(seeds)]
+        except Exception as exc:
+            out['models'][name] = {'error': f'{type(exc).__name__}: {exc}'}
+            continue
+        m = {q: float(np.mean([e[q] for e in errs])) for q in ('jack', 'p12')}
+        m['meets'] = bool(m['jack'] <= 1.5 * out['hf_seed_to_seed']['jack']
+                          and m['p12'] <= 1.5 * out['hf_seed_to_seed']['p12'])
+        out['models'][name] = m
+    return out
+
+
+def summarise(result) -> dict:
+    """Per model: cases meeting the noise-free bounds, worst ratios error / bound, features
+    within the yardstick's spread, noise goals met, median cost against hf."""
+    out = {}
+    keys = sorted({k for c in result['noise_free'].values() for k in c['models']})
+    for m in keys:
+        cases = [(name, c, c['models'][m]) for name, c in result['noise_free'].items()
+                 if m in c['models']]
+        ok = [r for _, _, r in cases if 'error' not in r]
+        failed = [name for name, _, r in cases if 'error' in r or not r['meets']]
+        feat = [all(r['features_within_2x_spread'].values()) for r in ok]
+        row = {'cases': len(cases), 'cases_meeting_bounds': len(cases) - len(failed),
+               'cases_failing': failed,
+               'worst_jack_over_bound': max((r['jack'] / c['bound']['jack']
+                                            for _, c, r in cases if 'error' not in r),
+                                            default=None),
+               'worst_p12_over_bound': max((r['p12'] / c['bound']['p12']
+                                           for _, c, r in cases if 'error' not in r),
+                                           default=None),
+               'cases_all_features_within_2x_spread': int(sum(feat)),
+               'median_cost_vs_hf': float(np.median([r['cost_s_per_s'] / c['hf_cost_s_per_s']
+                                                     for _, c, r in cases
+                                                     if 'error' not in r])) if ok else None}
+        noise = [(sc, c['models'][m]) for sc, c in result['noise'].items() if m in c['models']]
+        if noise:
+            row['noise_scenarios_meeting'] = sum(1 for _, r in noise if r.get('meets'))
+            row['noise_scenarios'] = len(noise)
+            row['noise_failing'] = [sc for sc, r in noise if not r.get('meets')]
+        out[m] = row
+    return out
