@@ -279,7 +279,8 @@ class ValveTestEstimator:
             pred = transient_map(xs, q, params=model_params)['p12_pa']
             r2 += float(np.sum((pred - p) ** 2))
             n += p.size
-        # the curves' spread, floored at the network's own held-out error: on clean maps, plus
+        # the curves' spread, floored at the network's own held-out error: on clean curves (per
+        # map, or per curve over the root of the curves used, whichever is larger), plus
         # the per-curve error at 1 % noise scaled by the noise the data show (measurement
         # noise biases the estimate, the same way on every curve, so their spread misses it;
         # the map model's relative residual at the estimate is 0.8x the noise level)
@@ -288,12 +289,15 @@ class ValveTestEstimator:
         clean, noisy = errs.get('clean', {}), errs.get('noise_1pct', {})
         p_rms = float(np.sqrt(np.mean(np.concatenate([p for _, _, p in curves]) ** 2)))
         noise = np.sqrt(r2 / n) / max(p_rms, 1e-9) / 0.01     # in units of 1 %
-        floor_c = np.hypot(clean.get('clearance_map', {}).get('rms', 0.0),
-                           noise * noisy.get('clearance_curve', {}).get('rms', 0.0)) / 100 * (
-            c1 - c0)
-        floor_o = np.hypot(clean.get('overlap_map', {}).get('rms', 0.0),
-                           noise * noisy.get('overlap_curve', {}).get('rms', 0.0)) / 100 * (
-            l1 - l0)
+        k = np.sqrt(len(curves))   # the per-map error of the held-out maps used 15 curves
+
+        def floor(name, span):
+            clean_err = max(clean.get(f'{name}_map', {}).get('rms', 0.0),
+                            clean.get(f'{name}_curve', {}).get('rms', 0.0) / k)
+            return np.hypot(clean_err, noise * noisy.get(f'{name}_curve', {}).get('rms', 0.0)
+                            ) / 100 * span
+        floor_c = floor('clearance', c1 - c0)
+        floor_o = floor('overlap', l1 - l0)
         return HealthEstimate(radial_clearance_m=clr,
                               radial_clearance_std_m=float(np.hypot(np.std(c), floor_c)),
                               overlap_m=lap, overlap_std_m=float(np.hypot(np.std(o), floor_o)),
