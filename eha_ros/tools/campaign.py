@@ -29,7 +29,7 @@ clogging, spool and jack friction, current offset) is read from the recordings a
 truth.
 
     eha-campaign [--out runs/campaign-<time>] [--scenarios a,b] [--models hf,dlut]
-                 [--compare-models dlut,dnn,dga,lut,ga,nn,nn2] [--seeds 3]
+                 [--compare-models dlut,dnn,dga,lut,ga,nn,nn2] [--seeds 2]
                  [--seed-models dlut,dga,lut,ga]
                  [--valve-tests nominal,worn] [--processes]
 
@@ -81,7 +81,7 @@ SEED_MODELS = ('dlut', 'dga', 'lut', 'ga')
 def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=GRAPH_MODELS,
                  processes=False, progress=print, valve_tests=tuple(VALVES),
                  valve_test_scenario='maintenance_test_quick', compare_models=COMPARE_MODELS,
-                 seeds: int = 3, seed_models=SEED_MODELS) -> dict:
+                 seeds: int = 2, seed_models=SEED_MODELS) -> dict:
     """Run, record, compare and report; returns the summary written to ``summary.json``."""
     from eha_ros.recording.compare import compare_runs, load_run, plot_runs
     from eha_ros.isolation import ros_environment
@@ -414,7 +414,7 @@ def main(argv=None) -> int:
                     help='surrogates of the physics-only comparison (empty: none)')
     ap.add_argument('--seed-models', default=','.join(SEED_MODELS),
                     help='compared surrogates also run with noise over the seeds')
-    ap.add_argument('--seeds', type=int, default=3,
+    ap.add_argument('--seeds', type=int, default=2,
                     help='noise seeds of the physics-only comparison (0: noise off only)')
     ap.add_argument('--valve-tests', default=','.join(VALVES),
                     help='valves given the diagnostic valve test (empty: none)')
