@@ -343,11 +343,15 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
                 break
             if states and states[-1].status == STATUS_DIVERGED:
                 break  # diverged: the plant has stopped
-            for name, (proc, _) in procs.items():
-                if proc.poll() is not None:
-                    raise GraphError(f'node {name} exited with status {proc.returncode} '
-                                     f'before the run completed (log: {log_dir / name}.log): '
-                                     + _tail(log_dir / f'{name}.log'))
+            exited = [name for name, (proc, _) in procs.items() if proc.poll() is not None]
+            if exited and stop is not None and stop():
+                interrupted = True  # the Ctrl-C reached a node before this loop saw it
+                break
+            if exited:
+                name, proc = exited[0], procs[exited[0]][0]
+                raise GraphError(f'node {name} exited with status {proc.returncode} '
+                                 f'before the run completed (log: {log_dir / name}.log): '
+                                 + _tail(log_dir / f'{name}.log'))
             if len(states) != last_count:
                 last_count, last_progress = len(states), time.monotonic()
             elif time.monotonic() - last_progress > timeout_s:

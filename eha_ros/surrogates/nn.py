@@ -12,12 +12,8 @@ Network
     same training budget the asinh transform of XS gave held-out map errors about twice as
     large (it spends the network's resolution on the null region at the expense of the rest).
 
-Data
-    ``nn`` is trained on DB2 and DB3 together (same wear grid; DB3's flows are the narrow
-    range): trained on DB2 alone it is as good on DB2's flows but twice as bad on DB3's.
-    Whole maps (``(overlap, clearance)`` pairs inside the wear grid) are held out for
-    validation and testing, the same pairs in both databases.  ``nn2`` is trained on DB5 with
-    every 7th flow curve held out for testing (the next one for validation).
+Data and training
+    :mod:`.nn_train` (which databases, which maps are held out, the training algorithms).
 
 Inference (numpy and numba only)
     One generic numba kernel, ``mlp`` (:func:`mlp_kernel`), evaluates any artefact of this
