@@ -25,7 +25,8 @@ from eha_ros.physics import default_params  # noqa: E402
 from eha_ros.physics.params import replace  # noqa: E402
 from eha_ros.surrogates.base import load_surrogate  # noqa: E402
 from eha_ros.surrogates.inloop import (CONTROLLER_PERIOD_S, DT_S, EXTRA_SCENARIOS,  # noqa
-                                       WEAR, noise_free, run, summarise, with_noise)
+                                       WEAR, largest_steps, noise_free, run,
+                                       summarise, with_noise)
 
 
 def main(argv=None):
@@ -33,10 +34,12 @@ def main(argv=None):
     ap.add_argument('--models', default='dlut,dnn,dga,lut,ga,nn,nn2')
     ap.add_argument('--scenarios', default=','.join(REFERENCE_SCENARIOS + EXTRA_SCENARIOS))
     ap.add_argument('--wear', choices=('nominal', 'all'), default='all')
-    ap.add_argument('--seeds', type=int, default=5)
+    ap.add_argument('--seeds', type=int, default=20)
+    ap.add_argument('--noise-models', default='dlut,dnn,dga,lut,ga',
+                    help='models run with noise over the seeds (those also in --models)')
     ap.add_argument('--no-noise', action='store_true')
-    ap.add_argument('--large-dt', type=float, default=2e-6,
-                    help='also run the dynamic surrogates at this step (0: no)')
+    ap.add_argument('--large-dts', default='2e-6,5e-6,1e-5',
+                    help='also run hf and the dynamic surrogates at these steps [s] ("": none)')
     ap.add_argument('--out', default=None, help='also write the JSON here')
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
@@ -48,10 +51,14 @@ def main(argv=None):
         print(f'inloop: error: unknown model(s) {", ".join(unknown)}', file=sys.stderr)
         return 2
     scenarios = [s for s in args.scenarios.split(',') if s]
+    try:
+        large_dts = [float(v) for v in args.large_dts.split(',') if v]
+    except ValueError:
+        print(f'inloop: error: --large-dts {args.large_dts!r} is not a list of steps [s]',
+              file=sys.stderr)
+        return 2
     for m in models:  # compile every model's loop first: costs exclude JIT compilation
         run(p0, 'step_0p1', load_surrogate(m, base), dt=1e-6)
-        if args.large_dt:
-            run(p0, 'step_0p1', load_surrogate(m, base), dt=args.large_dt)
     run(p0, 'step_0p1')
     wear = WEAR if args.wear == 'all' else {'nominal': None}
     result = {'benchmark': 'inloop', 'dt_s': DT_S, 'controller_period_s': CONTROLLER_PERIOD_S,
@@ -62,16 +69,18 @@ def main(argv=None):
                                          radial_clearance_m=w[1])
         sur = {m: load_surrogate(m, base) for m in models}
         for sc in scenarios:
-            result['noise_free'][f'{sc}/{wname}'] = noise_free(p, sc, sur, args.large_dt)
+            result['noise_free'][f'{sc}/{wname}'] = noise_free(p, sc, sur, large_dts)
             print(f'inloop: {sc}/{wname} done at {time.perf_counter() - t0:.0f} s',
                   file=sys.stderr, flush=True)
     if not args.no_noise and args.seeds > 0:
-        sur = {m: load_surrogate(m, base) for m in models}
+        sur = {m: load_surrogate(m, base) for m in models
+               if m in args.noise_models.split(',')}
         for sc in scenarios:
             result['noise'][sc] = with_noise(base, sc, sur, args.seeds)
             print(f'inloop: noise {sc} done at {time.perf_counter() - t0:.0f} s',
                   file=sys.stderr, flush=True)
     result['summary'] = summarise(result)
+    result['largest_steps'] = largest_steps(result['summary'])
     result['wall_s'] = round(time.perf_counter() - t0, 1)
     text = json.dumps(result)
     if args.out:

@@ -7,11 +7,12 @@ compilation excluded and reported separately).
 
 With ``--models`` (default: every shipped surrogate) it adds one row per fluid model: the
 plant with that surrogate in place of the hf fluid block, controller at 1 kHz, same commands,
-at dt = 1 us and, for the dynamic surrogates, at ``--large-dt`` (2 us, the larger step at
-which ``bench/inloop.py`` measures them against hf): wall seconds per simulated second and the
-ratio to hf's.
+at dt = 1 us and, for hf and the dynamic surrogates, at each of ``--large-dts`` (the larger
+steps at which ``bench/inloop.py`` measures them against hf at 1 us): wall seconds per simulated
+second and the ratio to hf's at 1 us.
 
     python bench/plant_rtf.py [--duration 1.0] [--repeat 3] [--models dlut,dnn,dga,lut,...]
+        [--large-dts 2e-6,5e-6]
 """
 
 import argparse
@@ -32,7 +33,7 @@ def main():
     ap.add_argument('--duration', type=float, default=1.0)
     ap.add_argument('--repeat', type=int, default=3)
     ap.add_argument('--models', default=','.join(m for m in MODELS if m != 'hf'))
-    ap.add_argument('--large-dt', type=float, default=2e-6)
+    ap.add_argument('--large-dts', default='2e-6,5e-6')
     args = ap.parse_args()
     p = default_params()
     t0 = time.perf_counter()
@@ -60,7 +61,8 @@ def main():
     out['models'] = {}
     for model in ['hf'] + models:
         fluid = None if model == 'hf' else load_surrogate(model, p)
-        dts = [1e-6] + ([args.large_dt] if model in DYNAMIC_MODELS else [])
+        large = [float(v) for v in args.large_dts.split(',') if v]
+        dts = [1e-6] + (large if model == 'hf' or model in DYNAMIC_MODELS else [])
         for dt in dts:
             simulate(p, 'step_0p1', duration_s=2e-3, dt_s=dt, controller_period_s=1e-3,
                      fluid=fluid)  # compile

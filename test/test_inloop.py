@@ -1,0 +1,66 @@
+"""The in-loop comparison's bookkeeping (:mod:`eha_ros.surrogates.inloop`): the step ladder,
+the seeds' statistics and the larger-step runs."""
+
+import math
+
+import numpy as np
+import pytest
+
+from eha_ros.physics import default_params
+from eha_ros.physics.params import replace
+from eha_ros.surrogates.base import load_surrogate
+from eha_ros.surrogates.inloop import DT_S, largest_steps, noise_free, with_noise
+
+
+def _row(meeting, cases=3, cost=1.0):
+    return {'cases': cases, 'cases_meeting_bounds': meeting, 'median_cost_vs_hf': cost}
+
+
+def test_largest_steps_stops_at_the_first_step_that_misses_a_case():
+    summary = {'dlut': _row(3, cost=1.5), 'dlut@dt=2e-06': _row(3, cost=0.8),
+               'dlut@dt=5e-06': _row(2, cost=0.3), 'dlut@dt=1e-05': _row(3, cost=0.2),
+               'dnn': _row(2), 'dnn@dt=2e-06': _row(3),
+               'hf@dt=2e-06': _row(3, cost=0.5), 'hf@dt=5e-06': _row(3, cost=0.2),
+               'lut': _row(0)}
+    out = largest_steps(summary)
+    # 10 us meets again, but 5 us did not: the ladder is not monotonic, so it stops at 2 us
+    assert out['dlut']['largest_step_s'] == 2e-6
+    assert out['dlut']['median_cost_vs_hf_at_it'] == 0.8
+    assert out['dlut']['steps_tried_s'] == [1e-6, 2e-6, 5e-6, 1e-5]
+    assert out['dnn']['largest_step_s'] is None  # misses at 1 us already
+    assert out['hf']['largest_step_s'] == 5e-6 and out['hf']['steps_tried_s'][0] == DT_S
+    assert 'lut' not in out  # run at one step only
+
+
+@pytest.fixture(scope='module')
+def dga():
+    return load_surrogate('dga')
+
+
+def test_with_noise_reports_each_seed_and_the_standard_error(dga):
+    p = default_params()
+    assert p.noise_std_a > 0
+    r = with_noise(p, 'step_0p1', {'dga': dga}, seeds=3)
+    assert r['seeds'] == 3
+    for e in (r['hf_seed_to_seed'], r['hf_cd_plus_0.1%_same_seed'], r['models']['dga']):
+        for q in ('jack', 'p12'):
+            v = np.array(e[f'{q}_per_seed'])
+            assert v.size == 3 and np.all(np.isfinite(v))
+            assert e[q] == pytest.approx(v.mean(), rel=1e-12)
+            assert e[f'{q}_sem'] == pytest.approx(v.std(ddof=1) / math.sqrt(3), rel=1e-12)
+    # another seed is another trajectory: the spread is not zero
+    assert r['hf_seed_to_seed']['jack'] > 0 and r['hf_seed_to_seed']['p12'] > 0
+    m = r['models']['dga']
+    assert m['meets'] == (m['jack'] <= 1.5 * r['hf_seed_to_seed']['jack']
+                          and m['p12'] <= 1.5 * r['hf_seed_to_seed']['p12'])
+
+
+def test_noise_free_runs_hf_and_the_dynamic_surrogates_at_the_larger_steps(dga):
+    p = replace(default_params(), noise_std_a=0.0)
+    r = noise_free(p, 'step_0p1', {'dga': dga, 'lut': load_surrogate('lut')},
+                   large_dts=(2e-6,))
+    assert set(r['models']) == {'hf@dt=2e-06', 'dga', 'dga@dt=2e-06', 'lut'}
+    # hf at twice the step stays within the bounds on a 0.1 mm step (the noise-free loop is
+    # well conditioned there: the yardstick is under 0.5 %)
+    assert r['models']['hf@dt=2e-06']['meets']
+    assert r['models']['hf@dt=2e-06']['jack'] > 0  # a different run, not hf itself
