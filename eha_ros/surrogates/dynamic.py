@@ -25,8 +25,8 @@ What is learned
 Validity (stored in each artefact's ``meta['valid_range']``)
     Spool position ``|XS| <=`` the stroke, overlaps (supply and return, each) in
     ``WEAR_RANGES['overlap_m']``, clearance in ``WEAR_RANGES['radial_clearance_m']``, pressure
-    drops ``|dp| <= DP_MAX_PA`` (twice the nominal supply; a chamber above that is held at the
-    table's edge conductance, the turbulent asymptote ``q ~ sqrt(dp)``).  :meth:`prepare`
+    drops ``|dp| <= DP_MAX_PA`` (twice the nominal supply; above it ``dlut`` extends its
+    table's last cell, the others their formula).  :meth:`prepare`
     refuses wear outside the ranges with a one-line :class:`SurrogateError`.  The edge law
     depends on the fluid and port parameters :data:`EDGE_PARAMETERS` only (not on the
     pressures, volumes or leakage, which stay physical); an artefact built for others is
@@ -41,11 +41,28 @@ Kernel interface (the plant's ``_run``, mode 2)
     clearance is folded in once per run or parameter change, not per step).
 
 Members (built by :mod:`.dynamic_train`)
-    ``dlut``: table of ``ln G`` over (s, sqrt|dp|, ln c), collapsed to the run's clearance by
-    power-law interpolation, bilinear per step; ``dnn``: a tanh network
+    ``dlut``: table of ``ln G`` over (s, |dp|, ln c), collapsed to the run's clearance, then
+    bilinear per step (below); ``dnn``: a tanh network
     ``(asinh(s/s0), asinh(|dp|/dp0), ln c) -> ln G``; ``dga``: a closed form designed from the
     physics of an annular orifice, coefficients fitted by the genetic algorithm (and, for
     comparison, by a gradient fit), see :func:`ga_edge_flow`.
+
+The ``dlut`` table
+    Its axes are spaced as float64 numbers are: :func:`log_axis` puts ``2^m`` equal cells in
+    each octave of ``|x| + 2^e``, so a point's cell is the exponent and top ``m`` mantissa bits
+    of ``|x| + 2^e`` and its weight the remaining bits (:func:`_log_cell`): no search and no
+    index table, a few integer operations where a searched axis chains dependent loads.
+    Openings ``|s|``: ``2^e`` = 1.9 um, 32 cells per octave (cells of 0.06 um at the edge,
+    then steps of 1.6-3.1 % to the end of the stroke), a row per sign, a node at 0 where the
+    edge uncovers; ``|dp|``: ``2^e`` = 1 Pa, 16 cells per octave, up to ``DP_MAX_PA``
+    (``dynamic_train.DLUT_GRID``).  The cells hold ``q = G |dp|``, linear in the laminar
+    limit (``q ~ dp``) and bent by at most 1/32 of a cell's relative width squared in the
+    turbulent one (``q ~ sqrt|dp|``; tabulating ``G sqrt|dp|`` over ``sqrt|dp|``, linear in
+    both, would put a square root ahead of the table loads in every step).  Prepared for a
+    clearance, each cell stores the four coefficients of its bilinear form contiguously.
+    Beyond ``DP_MAX_PA`` the last cell's line is extended (the flow keeps rising with the
+    drop); openings beyond the stroke are held at the end of the axis.  Errors: the
+    artefact's ``meta['errors']`` (``bench/surrogates_dynamic.py``).
 """
 
 from __future__ import annotations
@@ -60,12 +77,11 @@ from eha_ros.physics.maps import WEAR_RANGES
 from eha_ros.physics.valve import edge_coefficients, edge_constants, orifice_flow
 
 from .base import FluidSurrogate, SurrogateError, register_kernel
-from .lut import _locate
 from .nn import mlp_kernel
 
 __all__ = ['EDGE_PARAMETERS', 'edge_hash', 'DP_MAX_PA', 'edge_flows', 'edge_conductance',
            'DynamicSurrogate', 'PREPARERS', 'register_preparer', 'chamber_flows',
-           'dlut_kernel', 'dnn_kernel', 'dga_kernel', 'ga_edge_flow', 'GA_GENES']
+           'dlut_kernel', 'log_axis', 'dnn_kernel', 'dga_kernel', 'ga_edge_flow', 'GA_GENES']
 
 #: Parameters the edge law depends on (the wear, clearance and laps, are inputs).
 EDGE_PARAMETERS = ('fluid_density_kg_m3', 'fluid_kinematic_viscosity_m2_s', 'port_width_m',
@@ -117,38 +133,108 @@ def edge_conductance(s_m, dp_pa, clearance_m, params: PlantParams | None = None)
 
 # --- kernels ----------------------------------------------------------------------------------
 
+#: Bits of the float64 1.0: a mantissa ORed into them reads as a number in [1, 2).
+_ONE_BITS = np.int64(0x3FF0000000000000)
+
+
+def log_axis(exp2: int, log2_cells: int, x_max: float) -> np.ndarray:
+    """Nodes ``x >= 0`` of a ``dlut`` axis: ``x + 2^exp2`` at the float64 numbers whose
+    mantissa keeps only its top ``log2_cells`` bits, i.e. ``2^log2_cells`` equal cells per
+    octave of ``x + 2^exp2`` (uniform cells of ``2^(exp2 - log2_cells)`` from ``x = 0`` up to
+    ``2^exp2``, then geometric), up to the first node at or beyond ``x_max``."""
+    m = 1 << log2_cells
+    k = np.arange(0, m * 64)
+    a = 2.0 ** (exp2 + k // m) * (1.0 + (k % m) / m)
+    x = a - 2.0 ** exp2
+    return x[:int(np.searchsorted(x, x_max)) + 1]
+
+
 @njit(cache=True, inline='always')
-def _lut_edge(data, i, a, dp):
-    """One edge's flow from the prepared table, its opening already located (``i``, ``a``)."""
-    k = data[6]
-    v = math.sqrt(abs(dp))
-    j, b = _locate(data[3], data[4], data[5], v)
-    k0 = k[i, j] + b * (k[i, j + 1] - k[i, j])
-    k1 = k[i + 1, j] + b * (k[i + 1, j + 1] - k[i + 1, j])
-    q = v * (k0 + a * (k1 - k0))
-    return -q if dp < 0.0 else q
+def _log_cell(x, offset, shift, code0, mask, log2_cells):
+    """Cell ``k`` and fraction ``t`` (linear in ``x``) of ``x >= 0`` on a :func:`log_axis`
+    (``offset = 2^exp2``, the integers from :func:`_axis_consts`): the cell is the exponent
+    and top mantissa bits of ``x + 2^exp2``, the fraction its remaining mantissa bits.  No
+    search, no index table: integer operations on the bits.  ``k`` is not clamped."""
+    b = np.float64(x + offset).view(np.int64)
+    k = (b >> shift) - code0
+    t = np.int64(((b & mask) << log2_cells) | _ONE_BITS).view(np.float64) - 1.0
+    return k, t
+
+
+@njit(cache=True, inline='always')
+def _dlut_row(s, offset, shift, code0, mask, log2_cells, k_max, covered, row_cells):
+    """Start in the packed table of the row of cells holding the opening ``s`` [m], and the
+    weight ``a`` of its far node (held at the end of the axis beyond it)."""
+    k, a = _log_cell(abs(s), offset, shift, code0, mask, log2_cells)
+    if k > k_max:
+        k = k_max
+        a = 1.0
+    if s < 0.0:
+        k += covered
+    return k * row_cells, a
+
+
+@njit(cache=True, inline='always')
+def _dlut_col(x, offset, shift, code0, mask, log2_cells, k_max, x_last, inv_last):
+    """Cell and weight ``b`` of its far node of ``x = |dp|``; beyond the axis, the last
+    cell's line extended."""
+    j, b = _log_cell(x, offset, shift, code0, mask, log2_cells)
+    if j > k_max:
+        j = k_max
+        b = (x - x_last) * inv_last
+    return j, b
 
 
 @register_kernel('dlut')
 @njit(cache=True)
 def dlut_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
-    """(Q1L, Q2L) [m^3/s], edges from the prepared table ``K(s, sqrt|dp|)``.
+    """(Q1L, Q2L) [m^3/s], edges from the prepared table of ``q(s, |dp|)``.
 
-    ``data = (s_axis, s_aux, s_index, v_axis, v_aux, v_index, k_table, consts)`` with
-    ``consts = [ps, pr]`` (:func:`prepare_dlut`).  With equal laps the edges 1S/2R and 1R/2S
-    share their openings, so two of the four are located.
+    ``data = (table, int_consts, consts)`` (:func:`prepare_dlut`): per cell the four
+    coefficients of its bilinear form ``q = (q00 + b dq_b) + a (dq_a + b dq_ab)``, contiguous,
+    ``a`` and ``b`` the weights of the far nodes in ``|s|`` and ``|dp|``; ``q(s, dp) =
+    sign(dp) q(s, |dp|)``; ``consts = [ps, pr, ...]``.  With equal laps the edges 1S/2R and
+    1R/2S share their openings, so two of the four are located.  The helpers take scalars
+    only: an array passed to an inlined helper with branches costs reference counting.
     """
-    ps = data[7][0]
-    pr = data[7][1]
-    i1s, a1s = _locate(data[0], data[1], data[2], xs_m - lap_supply_m)
-    i1r, a1r = _locate(data[0], data[1], data[2], -xs_m - lap_return_m)
+    tab = data[0]
+    ic = data[1]
+    fc = data[2]
+    ps = fc[0]
+    pr = fc[1]
+    s_off, s_sh, s_c0, s_mask, s_m, s_kmax, s_cov, n_cols = (
+        fc[2], ic[0], ic[1], ic[2], ic[3], ic[4], ic[5], ic[11])
+    p_off, p_sh, p_c0, p_mask, p_m, p_kmax, p_last, p_inv = (
+        fc[3], ic[6], ic[7], ic[8], ic[9], ic[10], fc[4], fc[5])
+    r1s, a1s = _dlut_row(xs_m - lap_supply_m, s_off, s_sh, s_c0, s_mask, s_m, s_kmax, s_cov,
+                         n_cols)
+    r1r, a1r = _dlut_row(-xs_m - lap_return_m, s_off, s_sh, s_c0, s_mask, s_m, s_kmax, s_cov,
+                         n_cols)
     if lap_supply_m == lap_return_m:
-        i2s, a2s, i2r, a2r = i1r, a1r, i1s, a1s
+        r2s, a2s, r2r, a2r = r1r, a1r, r1s, a1s
     else:
-        i2s, a2s = _locate(data[0], data[1], data[2], -xs_m - lap_supply_m)
-        i2r, a2r = _locate(data[0], data[1], data[2], xs_m - lap_return_m)
-    q1l = _lut_edge(data, i1s, a1s, ps - p1_pa) - _lut_edge(data, i1r, a1r, p1_pa - pr)
-    q2l = _lut_edge(data, i2r, a2r, p2_pa - pr) - _lut_edge(data, i2s, a2s, ps - p2_pa)
+        r2s, a2s = _dlut_row(-xs_m - lap_supply_m, s_off, s_sh, s_c0, s_mask, s_m, s_kmax,
+                             s_cov, n_cols)
+        r2r, a2r = _dlut_row(xs_m - lap_return_m, s_off, s_sh, s_c0, s_mask, s_m, s_kmax,
+                             s_cov, n_cols)
+    d1s = ps - p1_pa
+    d1r = p1_pa - pr
+    d2r = p2_pa - pr
+    d2s = ps - p2_pa
+    j, b = _dlut_col(abs(d1s), p_off, p_sh, p_c0, p_mask, p_m, p_kmax, p_last, p_inv)
+    c = (r1s + j) * 4
+    q1s = (tab[c] + b * tab[c + 1]) + a1s * (tab[c + 2] + b * tab[c + 3])
+    j, b = _dlut_col(abs(d1r), p_off, p_sh, p_c0, p_mask, p_m, p_kmax, p_last, p_inv)
+    c = (r1r + j) * 4
+    q1r = (tab[c] + b * tab[c + 1]) + a1r * (tab[c + 2] + b * tab[c + 3])
+    j, b = _dlut_col(abs(d2r), p_off, p_sh, p_c0, p_mask, p_m, p_kmax, p_last, p_inv)
+    c = (r2r + j) * 4
+    q2r = (tab[c] + b * tab[c + 1]) + a2r * (tab[c + 2] + b * tab[c + 3])
+    j, b = _dlut_col(abs(d2s), p_off, p_sh, p_c0, p_mask, p_m, p_kmax, p_last, p_inv)
+    c = (r2s + j) * 4
+    q2s = (tab[c] + b * tab[c + 1]) + a2s * (tab[c + 2] + b * tab[c + 3])
+    q1l = (-q1s if d1s < 0.0 else q1s) - (-q1r if d1r < 0.0 else q1r)
+    q2l = (-q2r if d2r < 0.0 else q2r) - (-q2s if d2s < 0.0 else q2s)
     return q1l, q2l
 
 
@@ -262,17 +348,36 @@ def _ln_c_weights(axis_ln_c, c):
     return k, w
 
 
+def _axis_consts(exp2, log2_cells):
+    """``_log_cell``'s integer constants of a :func:`log_axis`."""
+    shift = 52 - log2_cells
+    return [shift, (1023 + exp2) << log2_cells, (1 << shift) - 1, log2_cells]
+
+
 @register_preparer('dlut')
 def prepare_dlut(data, meta, p: PlantParams):
-    """Collapse the table ``ln G[s, v, ln c]`` to ``K[s, v] = G v`` at the clearance of ``p``
+    """Collapse the table ``ln G[s, |dp|, ln c]`` to ``q = G |dp|`` at the clearance of ``p``
     (cubic Lagrange interpolation of ``ln G`` in ``ln c``: exact for the power laws of the
-    laminar and orifice limits, fourth order between them)."""
-    s_axis, s_aux, s_index, v_axis, v_aux, v_index, ln_c, ln_g = data[:8]
+    laminar and orifice limits, fourth order between them) and pack each cell's bilinear
+    coefficients contiguously (float64)."""
+    s_nodes, dp_nodes, ln_c, ln_g = data[:4]
+    g = meta['table']['grid']
     k, w = _ln_c_weights(ln_c, p.radial_clearance_m)
     lg = sum(w[j] * ln_g[:, :, k + j].astype(float) for j in range(4))
-    table = np.ascontiguousarray(np.exp(lg) * v_axis[None, :])
-    return (s_axis, s_aux, s_index, v_axis, v_aux, v_index, table,
-            np.array([p.supply_pressure_pa, p.return_pressure_pa]))
+    q = np.exp(lg) * dp_nodes[None, :]
+    n_s = s_nodes.size
+    cells = []
+    for side in (q[:n_s], q[n_s:]):  # open, then covered (rows at s = node, then -node)
+        q00, q01, q10, q11 = side[:-1, :-1], side[:-1, 1:], side[1:, :-1], side[1:, 1:]
+        cells.append(np.stack([q00, q01 - q00, q10 - q00, (q11 - q10) - (q01 - q00)], -1))
+    table = np.ascontiguousarray(np.concatenate(cells, axis=0)).ravel()
+    n_p = dp_nodes.size
+    ic = np.array(_axis_consts(g['s_exp2'], g['s_log2_cells']) + [n_s - 2, n_s - 1]
+                  + _axis_consts(g['dp_exp2'], g['dp_log2_cells']) + [n_p - 2, n_p - 1],
+                  dtype=np.int64)
+    fc = np.array([p.supply_pressure_pa, p.return_pressure_pa, 2.0 ** g['s_exp2'],
+                   2.0 ** g['dp_exp2'], dp_nodes[-2], 1.0 / (dp_nodes[-1] - dp_nodes[-2])])
+    return (table, ic, fc)
 
 
 @register_preparer('dnn')

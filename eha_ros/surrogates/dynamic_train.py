@@ -30,17 +30,18 @@ from eha_ros.physics import PlantParams, default_params
 
 from .base import load_surrogate, models_dir, save_artefact
 from .dynamic import (DP_MAX_PA, EDGE_PARAMETERS, GA_GENES, edge_conductance, edge_flows,
-                      edge_hash, valid_range)
-from .lut import axis_tables
+                      edge_hash, log_axis, valid_range)
 from .nn import fit_inputs, fit_output, pack, transform_inputs
 
 __all__ = ['DLUT_GRID', 'DNN_SETTINGS', 'DGA_SETTINGS', 'sample_points', 'edge_errors',
            'chamber_errors', 'build_dlut', 'build_dnn', 'build_dga', 'build_all']
 
-#: Table of ``dlut``: openings ``S sinh(a u) / sinh(a)`` (odd count, node at 0 where the edge
-#: uncovers), ``sqrt|dp|`` as ``V sinh(a u) / sinh(a)`` over [0, sqrt(DP_MAX_PA)], clearance
-#: log-spaced over its range.
-DLUT_GRID = {'n_s': 301, 's_density': 5.0, 'n_v': 161, 'v_density': 6.0, 'n_c': 8}
+#: Table of ``dlut`` (:func:`.dynamic.log_axis`): openings ``|s|`` on ``2^s_log2_cells``
+#: equal cells per octave of ``|s| + 2^s_exp2`` m (cells of 0.06 um within 1.9 um of the
+#: edge, then steps of 1.6-3.1 %), both signs, a node at 0 where the edge uncovers; ``|dp|``
+#: likewise with ``2^dp_exp2`` Pa (cells of 1/16 Pa below 1 Pa, then steps of 3.1-6.3 %) up
+#: to ``DP_MAX_PA``; clearance log-spaced over its range.
+DLUT_GRID = {'s_exp2': -19, 's_log2_cells': 5, 'dp_exp2': 0, 'dp_log2_cells': 4, 'n_c': 8}
 
 #: Network of ``dnn``.
 DNN_SETTINGS = {
@@ -148,38 +149,34 @@ def _meta(kind: str, p: PlantParams, extra: dict) -> dict:
 
 # --- dlut ---------------------------------------------------------------------------------------
 
-def _sinh_axis(n, span, density, symmetric):
-    u = np.linspace(-1.0, 1.0, n) if symmetric else np.linspace(0.0, 1.0, n)
-    x = span * np.sinh(density * u) / math.sinh(density)
-    if symmetric:
-        x = 0.5 * (x - x[::-1])
-        x[n // 2] = 0.0
-    return x
-
-
 def build_dlut(params: PlantParams | None = None, grid: dict | None = None):
-    """``(data, meta)`` of the table ``ln G[s, v, ln c]`` (float32)."""
+    """``(data, meta)`` of the table ``ln G[s, |dp|, ln c]`` (float32)."""
     p = params if params is not None else default_params()
     g = dict(DLUT_GRID, **(grid or {}))
     t0 = time.perf_counter()
-    s_axis = _sinh_axis(g['n_s'], _s_max(p), g['s_density'], True)
-    v_axis = _sinh_axis(g['n_v'], math.sqrt(DP_MAX_PA), g['v_density'], False)
+    s_nodes = log_axis(g['s_exp2'], g['s_log2_cells'], _s_max(p))
+    dp_nodes = log_axis(g['dp_exp2'], g['dp_log2_cells'], DP_MAX_PA)
+    s_rows = np.concatenate([s_nodes, -s_nodes])
     lo, hi = valid_range(p)['radial_clearance_m']
     ln_c = np.linspace(math.log(lo), math.log(hi), g['n_c'])
-    G = edge_conductance(s_axis[:, None, None], v_axis[None, :, None] ** 2,
+    G = edge_conductance(s_rows[:, None, None], dp_nodes[None, :, None],
                          np.exp(ln_c)[None, None, :], p)
     ln_g = np.log(G).astype(np.float32)
-    s_aux, s_index = axis_tables(s_axis)
-    v_aux, v_index = axis_tables(v_axis)
-    data = (s_axis, s_aux, s_index, v_axis, v_aux, v_index, ln_c, ln_g)
+    data = (s_nodes, dp_nodes, ln_c, ln_g)
     meta = _meta('dlut', p, {
         'table': {'shape': list(ln_g.shape), 'dtype': 'float32', 'grid': g,
-                  'axes': 'data_0 openings s [m] (sinh spacing, node at 0), data_3 '
-                          'v = sqrt|dp| [Pa^0.5] (sinh spacing), data_6 ln(clearance / m), '
-                          'data_7 ln(G / (m^3/(s Pa)))',
-                  'interpolation': 'clearance: power law between neighbouring nodes (linear '
-                                   'in ln G over ln c), once per wear; per step: bilinear in '
-                                   '(s, v) of K = G v, q = sign(dp) v K'},
+                  'axes': 'data_0 openings |s| [m] (rows of data_3: s = data_0, then '
+                          's = -data_0), data_1 pressure drops |dp| [Pa], both on '
+                          '2^log2_cells equal cells per octave of |x| + 2^exp2 '
+                          '(eha_ros.surrogates.dynamic.log_axis), data_2 ln(clearance / m), '
+                          'data_3 ln(G / (m^3/(s Pa)))',
+                  'interpolation': 'clearance: cubic Lagrange in ln G over ln c, once per '
+                                   'wear; per step: bilinear in (|s|, |dp|) of q = G |dp| '
+                                   'within the cell located from the bits of |x| + 2^exp2, '
+                                   'q(s, dp) = sign(dp) q(s, |dp|)'},
+        'outside_range': 'wear or stroke outside: refused by prepare (SurrogateError); '
+                         '|dp| > dp_pa[1]: the last cell\'s line in |dp| extended; openings '
+                         'beyond opening_m: held at the end of the axis',
         'build_s': round(time.perf_counter() - t0, 2),
     })
     return data, meta
