@@ -195,7 +195,8 @@ def dlut_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
     ``a`` and ``b`` the weights of the far nodes in ``|s|`` and ``|dp|``; ``q(s, dp) =
     sign(dp) q(s, |dp|)``; ``consts = [ps, pr, ...]``.  With equal laps the edges 1S/2R and
     1R/2S share their openings, so two of the four are located.  The helpers take scalars
-    only: an array passed to an inlined helper with branches costs reference counting.
+    only (an array passed to an inlined helper with branches costs reference counting) and
+    the table index is unsigned (no negative-index wrap-around on the way to the loads).
     """
     tab = data[0]
     ic = data[1]
@@ -222,16 +223,16 @@ def dlut_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
     d2r = p2_pa - pr
     d2s = ps - p2_pa
     j, b = _dlut_col(abs(d1s), p_off, p_sh, p_c0, p_mask, p_m, p_kmax, p_last, p_inv)
-    c = (r1s + j) * 4
+    c = np.uint64((r1s + j) * 4)
     q1s = (tab[c] + b * tab[c + 1]) + a1s * (tab[c + 2] + b * tab[c + 3])
     j, b = _dlut_col(abs(d1r), p_off, p_sh, p_c0, p_mask, p_m, p_kmax, p_last, p_inv)
-    c = (r1r + j) * 4
+    c = np.uint64((r1r + j) * 4)
     q1r = (tab[c] + b * tab[c + 1]) + a1r * (tab[c + 2] + b * tab[c + 3])
     j, b = _dlut_col(abs(d2r), p_off, p_sh, p_c0, p_mask, p_m, p_kmax, p_last, p_inv)
-    c = (r2r + j) * 4
+    c = np.uint64((r2r + j) * 4)
     q2r = (tab[c] + b * tab[c + 1]) + a2r * (tab[c + 2] + b * tab[c + 3])
     j, b = _dlut_col(abs(d2s), p_off, p_sh, p_c0, p_mask, p_m, p_kmax, p_last, p_inv)
-    c = (r2s + j) * 4
+    c = np.uint64((r2s + j) * 4)
     q2s = (tab[c] + b * tab[c + 1]) + a2s * (tab[c + 2] + b * tab[c + 3])
     q1l = (-q1s if d1s < 0.0 else q1s) - (-q1r if d1r < 0.0 else q1r)
     q2l = (-q2r if d2r < 0.0 else q2r) - (-q2s if d2s < 0.0 else q2s)
