@@ -268,9 +268,23 @@ GA_GENES = ('k_lam', 'n_lam', 'k_turb', 'k_rey')
 
 
 @njit(cache=True, inline='always')
-def ga_edge_flow(s, dp, cf):
-    """The closed-form edge law of ``dga``: ``cf = [c^2, a_lam, k_turb, k_rey]`` (prepared
-    for one clearance ``c``, :func:`prepare_dga`)::
+def _ga_edge(s, dp, c2, a_lam, k_turb, k_rey):
+    """``(2 dp h^2, den h^2)`` of :func:`ga_edge_flow`: the flow is their ratio.  Multiplying
+    through by ``h^2`` leaves no division in the edge; the kernel divides once per chamber."""
+    if s > 0.0:
+        rl = 0.0
+        h2 = c2 + s * s
+    else:
+        rl = -a_lam * s
+        h2 = c2
+    rh = rl * h2
+    return 2.0 * dp * h2, rh + math.sqrt(rh * rh + k_rey + k_turb * h2 * abs(dp))
+
+
+@njit(cache=True, inline='always')
+def ga_edge_flow(s, dp, c2, a_lam, k_turb, k_rey):
+    """The closed-form edge law of ``dga``, its coefficients ``[c^2, a_lam, k_turb, k_rey]``
+    prepared for one clearance ``c`` (:func:`prepare_dga`)::
 
         h^2 = c^2 + max(s, 0)^2                     (annulus, then truncated cone)
         RL  = a_lam max(-s, 0),  a_lam = k_lam / c^n_lam   (laminar, covered length)
@@ -282,18 +296,11 @@ def ga_edge_flow(s, dp, cf):
     the orifice law of every metering edge); with ``n_lam = 3`` (Poiseuille flow in a slit)
     it is the form of the hf model, whose coefficients the fit does not know.  The area
     exponent is fixed at the orifice's 1 (a free exponent fitted to 0.98 and cost a power per
-    edge and step).
+    edge and step).  Scalars only: an array passed into an inlined function with branches
+    costs reference counting on every call.
     """
-    c2 = cf[0]
-    if s > 0.0:
-        rl = 0.0
-        h2 = c2 + s * s
-    else:
-        rl = -cf[1] * s
-        h2 = c2
-    g = 1.0 / h2
-    den = rl + math.sqrt(rl * rl + cf[3] * g * g + cf[2] * g * abs(dp))
-    return 2.0 * dp / max(den, 1e-300)
+    num, den = _ga_edge(s, dp, c2, a_lam, k_turb, k_rey)
+    return num / max(den, 1e-300)
 
 
 @register_kernel('dga')
@@ -301,12 +308,20 @@ def ga_edge_flow(s, dp, cf):
 def dga_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
     """(Q1L, Q2L) [m^3/s] from the closed form; ``data = (cf, consts)``, ``consts = [ps, pr]``."""
     cf = data[0]
+    c2, a, kt, kr = cf[0], cf[1], cf[2], cf[3]
     ps = data[1][0]
     pr = data[1][1]
-    q1l = (ga_edge_flow(xs_m - lap_supply_m, ps - p1_pa, cf)
-           - ga_edge_flow(-xs_m - lap_return_m, p1_pa - pr, cf))
-    q2l = (ga_edge_flow(xs_m - lap_return_m, p2_pa - pr, cf)
-           - ga_edge_flow(-xs_m - lap_supply_m, ps - p2_pa, cf))
+    n1s, d1s = _ga_edge(xs_m - lap_supply_m, ps - p1_pa, c2, a, kt, kr)
+    n1r, d1r = _ga_edge(-xs_m - lap_return_m, p1_pa - pr, c2, a, kt, kr)
+    n2r, d2r = _ga_edge(xs_m - lap_return_m, p2_pa - pr, c2, a, kt, kr)
+    n2s, d2s = _ga_edge(-xs_m - lap_supply_m, ps - p2_pa, c2, a, kt, kr)
+    # one division per chamber: n_in / d_in - n_out / d_out over the common denominator
+    d1s = max(d1s, 1e-300)
+    d1r = max(d1r, 1e-300)
+    d2r = max(d2r, 1e-300)
+    d2s = max(d2s, 1e-300)
+    q1l = (n1s * d1r - n1r * d1s) / (d1s * d1r)
+    q2l = (n2r * d2s - n2s * d2r) / (d2r * d2s)
     return q1l, q2l
 
 
