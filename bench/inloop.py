@@ -9,14 +9,16 @@ Cost: wall seconds per simulated second of each run against hf's (JIT compilatio
 every model runs once before).
 
     nice python bench/inloop.py [--models dlut,dnn,dga,lut,ga,nn,nn2] [--seeds 5]
-        [--scenarios a,b] [--no-noise] [--wear nominal|all] [--out FILE]
+        [--scenarios a,b] [--no-noise] [--wear nominal|all] [--jobs 2] [--out FILE]
 """
 
 import argparse
 import json
+import multiprocessing
 import os
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 
 os.environ.setdefault('NUMBA_NUM_THREADS', '1')
 
@@ -27,6 +29,39 @@ from eha_ros.surrogates.base import load_surrogate  # noqa: E402
 from eha_ros.surrogates.inloop import (CONTROLLER_PERIOD_S, DT_S, EXTRA_SCENARIOS,  # noqa
                                        WEAR, largest_steps, noise_free, run,
                                        summarise, with_noise)
+
+_SURROGATES = {}
+
+
+def _warm_up(models):
+    """Load every model and compile its loop, so that costs exclude JIT compilation."""
+    base = default_params()
+    p0 = replace(base, noise_std_a=0.0)
+    for m in models:
+        _SURROGATES[m] = load_surrogate(m, base)
+        run(p0, 'step_0p1', _SURROGATES[m], dt=DT_S)
+    run(p0, 'step_0p1')
+
+
+def _task(task, job):
+    """One case: ``('noise_free', wear, scenario)`` or ``('noise', 'nominal', scenario)``."""
+    models, noise_models, large_dts, seeds = job
+    kind, wname, sc = task
+    base = default_params()
+    if kind == 'noise':
+        return with_noise(base, sc, {m: _SURROGATES[m] for m in noise_models}, seeds)
+    w = WEAR[wname]
+    p = replace(base, noise_std_a=0.0)
+    if w is not None:
+        p = replace(p, overlap_supply_m=w[0], overlap_return_m=w[0], radial_clearance_m=w[1])
+    return noise_free(p, sc, {m: _SURROGATES[m] for m in models}, large_dts)
+
+
+def _progress(task, t0):
+    kind, wname, sc = task
+    label = f'{sc}/{wname}' if kind == 'noise_free' else f'noise {sc}'
+    print(f'inloop: {label} done at {time.perf_counter() - t0:.0f} s', file=sys.stderr,
+          flush=True)
 
 
 def main(argv=None):
@@ -40,45 +75,56 @@ def main(argv=None):
     ap.add_argument('--no-noise', action='store_true')
     ap.add_argument('--large-dts', default='2e-6,5e-6,1e-5',
                     help='also run hf and the dynamic surrogates at these steps [s] ("": none)')
+    ap.add_argument('--jobs', type=int, default=1,
+                    help='worker processes (each case runs in one; costs stay per run)')
     ap.add_argument('--out', default=None, help='also write the JSON here')
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
-    base = default_params()
-    p0 = replace(base, noise_std_a=0.0)
     models = [m for m in args.models.split(',') if m]
     unknown = [m for m in models if m not in MODELS or m == 'hf']
     if unknown:
         print(f'inloop: error: unknown model(s) {", ".join(unknown)}', file=sys.stderr)
         return 2
     scenarios = [s for s in args.scenarios.split(',') if s]
+    if args.jobs < 1:
+        print(f'inloop: error: --jobs {args.jobs} must be at least 1', file=sys.stderr)
+        return 2
     try:
         large_dts = [float(v) for v in args.large_dts.split(',') if v]
     except ValueError:
         print(f'inloop: error: --large-dts {args.large_dts!r} is not a list of steps [s]',
               file=sys.stderr)
         return 2
-    for m in models:  # compile every model's loop first: costs exclude JIT compilation
-        run(p0, 'step_0p1', load_surrogate(m, base), dt=1e-6)
-    run(p0, 'step_0p1')
     wear = WEAR if args.wear == 'all' else {'nominal': None}
+    noise_models = ([m for m in models if m in args.noise_models.split(',')]
+                    if not args.no_noise and args.seeds > 0 else [])
+    tasks = [('noise_free', wname, sc) for wname in wear for sc in scenarios]
+    tasks += [('noise', 'nominal', sc) for sc in scenarios if noise_models]
     result = {'benchmark': 'inloop', 'dt_s': DT_S, 'controller_period_s': CONTROLLER_PERIOD_S,
-              'models': models, 'scenarios': scenarios,
+              'models': models, 'scenarios': scenarios, 'noise_models': noise_models,
+              'seeds': args.seeds, 'jobs': args.jobs,
               'wear': {k: v for k, v in wear.items()}, 'noise_free': {}, 'noise': {}}
-    for wname, w in wear.items():
-        p = p0 if w is None else replace(p0, overlap_supply_m=w[0], overlap_return_m=w[0],
-                                         radial_clearance_m=w[1])
-        sur = {m: load_surrogate(m, base) for m in models}
-        for sc in scenarios:
-            result['noise_free'][f'{sc}/{wname}'] = noise_free(p, sc, sur, large_dts)
-            print(f'inloop: {sc}/{wname} done at {time.perf_counter() - t0:.0f} s',
-                  file=sys.stderr, flush=True)
-    if not args.no_noise and args.seeds > 0:
-        sur = {m: load_surrogate(m, base) for m in models
-               if m in args.noise_models.split(',')}
-        for sc in scenarios:
-            result['noise'][sc] = with_noise(base, sc, sur, args.seeds)
-            print(f'inloop: noise {sc} done at {time.perf_counter() - t0:.0f} s',
-                  file=sys.stderr, flush=True)
+    job = (models, noise_models, large_dts, args.seeds)
+    done = {}
+    if args.jobs == 1:
+        _warm_up(models)
+        for task in tasks:
+            done[task] = _task(task, job)
+            _progress(task, t0)
+    else:
+        ctx = multiprocessing.get_context('spawn')
+        with ProcessPoolExecutor(args.jobs, mp_context=ctx, initializer=_warm_up,
+                                 initargs=(models,)) as pool:
+            futures = {pool.submit(_task, task, job): task for task in tasks}
+            for fut in as_completed(futures):
+                done[futures[fut]] = fut.result()
+                _progress(futures[fut], t0)
+    for task in tasks:  # in order, whatever order they finished in
+        kind, wname, sc = task
+        if kind == 'noise_free':
+            result['noise_free'][f'{sc}/{wname}'] = done[task]
+        else:
+            result['noise'][sc] = done[task]
     result['summary'] = summarise(result)
     result['largest_steps'] = largest_steps(result['summary'])
     result['wall_s'] = round(time.perf_counter() - t0, 1)
