@@ -205,3 +205,68 @@ def test_dlut_flow_keeps_rising_beyond_its_pressure_range():
         inside = dp <= DP_MAX_PA
         ref = edge_flows(opening, dp[inside], P.radial_clearance_m)
         assert np.max(np.abs(q[inside] / ref - 1.0)) < 2e-3
+
+
+# --- dnn: the kernel against its own network, the libm-free functions it uses ------------------
+
+def test_dnn_kernel_equals_its_network():
+    """The kernel (normalisations and the clearance folded into the weights by prepare, the
+    logarithms and the exponential without libm) gives the flows of the network as trained,
+    evaluated in numpy (measured: within 1e-12 relative)."""
+    from eha_ros.surrogates.dynamic import dnn_numpy
+    s = load_surrogate('dnn')
+    rng = np.random.default_rng(5)
+    n = 3000
+    op = np.concatenate([rng.uniform(-306e-6, 306e-6, n // 2), rng.uniform(-5e-6, 5e-6, n // 2),
+                         [0.0, 1e-12, -1e-12]])
+    dp = np.concatenate([np.exp(rng.uniform(0.0, np.log(8e7), n)) * rng.choice([-1.0, 1.0], n),
+                         [3e6, -1.0, 5e7]])
+    for clr in (1.0e-6, 2.5e-6, 6.0e-6):
+        got = s.edge_flow(op, dp, replace(P, radial_clearance_m=clr))
+        ref = dnn_numpy(s.data, op, dp, clr)
+        np.testing.assert_allclose(got, ref, rtol=1e-10, atol=0.0)
+    assert s.edge_flow(np.array([1e-6]), np.array([0.0]))[0] == 0.0
+
+
+def test_dnn_numpy_is_the_trained_network():
+    """The numpy reference of the kernel test is the torch network the trainer fitted (same
+    activation, inputs, skip term, normalisations)."""
+    torch = pytest.importorskip('torch')
+    from eha_ros.surrogates.dynamic import dnn_features, dnn_numpy
+    from eha_ros.surrogates.training import make_torch_mlp
+    s = load_surrogate('dnn')
+    data, arch = s.data, s.meta['architecture']
+    m = make_torch_mlp(d_in=4, d_hidden=arch['d_hidden'], activation=arch['activation'],
+                       skip=arch['skip'])
+    with torch.no_grad():
+        m.theta.copy_(torch.as_tensor(np.asarray(data[3], dtype=float)))
+    rng = np.random.default_rng(8)
+    op, dp = rng.uniform(-20e-6, 20e-6, 2000), rng.uniform(-3e7, 3e7, 2000)
+    z = (dnn_features(op, dp, 3.3e-6, float(data[4][0])) - data[1][0]) / data[1][1]
+    with torch.no_grad():
+        ln_g = data[2][0] + data[2][1] * m(torch.as_tensor(z)).numpy()[:, 0]
+    np.testing.assert_allclose(dnn_numpy(data, op, dp, 3.3e-6), dp * np.exp(ln_g), rtol=1e-12)
+
+
+def test_dnn_refuses_an_artefact_its_kernel_does_not_evaluate(tmp_path):
+    from eha_ros.surrogates.base import load_artefact, models_dir, save_artefact
+    data, meta = load_artefact(models_dir() / 'dnn.npz')
+    meta = dict(meta, architecture=dict(meta['architecture'], activation='tanh'))
+    save_artefact(tmp_path / 'dnn.npz', data, meta)
+    with pytest.raises(SurrogateError, match='quintic'):
+        load_surrogate('dnn', P, path=tmp_path / 'dnn.npz').prepare(P)
+
+
+@pytest.mark.parametrize('scenario,lap,clr', [('step_0p01', 3.1e-6, 3.9e-6),
+                                              ('ramp_0p01', -0.7e-6, 1.6e-6),
+                                              ('sine_0p01_10pi', 1e-6, 2.5e-6)])
+def test_dnn_follows_hf_on_small_signals(scenario, lap, clr):
+    """Noise off, the small-signal cases the earlier network failed (spool near null, the
+    chamber pressures set by nearly covered edges): within the in-loop bounds of
+    bench/inloop.py (jack <= max(1 %, 2 x yardstick), P12 <= max(5 %, 2 x yardstick))."""
+    from eha_ros.surrogates.inloop import noise_free
+    p = replace(_worn(lap, clr), noise_std_a=0.0)
+    case = noise_free(p, scenario, {'dnn': load_surrogate('dnn')})
+    got = case['models']['dnn']
+    assert got['jack'] <= case['bound']['jack'] and got['p12'] <= case['bound']['p12'], (
+        got['jack'], got['p12'], case['bound'])

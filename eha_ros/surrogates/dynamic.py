@@ -42,10 +42,10 @@ Kernel interface (the plant's ``_run``, mode 2)
 
 Members (built by :mod:`.dynamic_train`)
     ``dlut``: table of ``ln G`` over (s, |dp|, ln c), collapsed to the run's clearance, then
-    bilinear per step (below); ``dnn``: a tanh network
-    ``(asinh(s/s0), asinh(|dp|/dp0), ln c) -> ln G``; ``dga``: a closed form designed from the
-    physics of an annular orifice, coefficients fitted by the genetic algorithm (and, for
-    comparison, by a gradient fit), see :func:`ga_edge_flow`.
+    bilinear per step (below); ``dnn``: a network ``features -> ln G``, see
+    below; ``dga``: a closed form designed from the physics of an annular orifice,
+    coefficients fitted by the genetic algorithm (and, for comparison, by a gradient fit), see
+    :func:`ga_edge_flow`.
 
 The ``dlut`` table
     Its axes are spaced as float64 numbers are: :func:`log_axis` puts ``2^m`` equal cells in
@@ -63,6 +63,22 @@ The ``dlut`` table
     Beyond ``DP_MAX_PA`` the last cell's line is extended (the flow keeps rising with the
     drop); openings beyond the stroke are held at the end of the axis.  Errors: the
     artefact's ``meta['errors']`` (``bench/surrogates_dynamic.py``).
+
+The ``dnn`` network
+    Inputs (:func:`dnn_features`, all logarithmic, the opening in units of the clearance):
+    ``ln(1 + (s/c)^2) / 2`` while open (the gap of the truncated cone over the clearance),
+    ``ln(1 - s/c)`` while covered (the laminar covered length), ``ln(1 + |dp| / dp0)`` and
+    ``ln c``.  Two hidden layers of :data:`DNN_WIDTH` units with the activation
+    ``x (15 - 10 x^2 + 3 x^4) / 8`` on ``x = clip(z, -1, 1)`` (a polynomial: no
+    transcendental per unit), a linear output plus a linear skip term of the inputs (the
+    orifice law's log-log asymptotes are linear in these inputs, the hidden layers learn the
+    transitions).  Trained (:func:`.dynamic_train.build_dnn`) on the hf edge equations with
+    most points where the loop lives (openings within ~10 um of the edge, drops up to 1.1 x
+    supply).  :func:`prepare_dnn` folds the clearance's input (constant within a run) and the
+    normalisations into the weights; the kernel evaluates the four edges of a step as the
+    four lanes of ``<4 x double>`` vectors, its LLVM IR generated for the fixed width
+    (:func:`_dnn_flows`: logarithm and exponential from the floating-point bits and
+    polynomials, no libm call).  :func:`dnn_numpy` is the same network in numpy.
 """
 
 from __future__ import annotations
@@ -70,18 +86,21 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from llvmlite import ir as llvm_ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 from eha_ros.physics import PlantParams, default_params, params_hash
 from eha_ros.physics.maps import WEAR_RANGES
 from eha_ros.physics.valve import edge_coefficients, edge_constants, orifice_flow
 
 from .base import FluidSurrogate, SurrogateError, register_kernel
-from .nn import mlp_kernel
 
 __all__ = ['EDGE_PARAMETERS', 'edge_hash', 'DP_MAX_PA', 'edge_flows', 'edge_conductance',
            'DynamicSurrogate', 'PREPARERS', 'register_preparer', 'chamber_flows',
-           'dlut_kernel', 'log_axis', 'dnn_kernel', 'dga_kernel', 'ga_edge_flow', 'GA_GENES']
+           'dlut_kernel', 'log_axis', 'dnn_kernel', 'dga_kernel', 'ga_edge_flow', 'GA_GENES',
+           'DNN_WIDTH', 'dnn_features', 'dnn_numpy']
 
 #: Parameters the edge law depends on (the wear, clearance and laps, are inputs).
 EDGE_PARAMETERS = ('fluid_density_kg_m3', 'fluid_kinematic_viscosity_m2_s', 'port_width_m',
@@ -239,28 +258,190 @@ def dlut_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
     return q1l, q2l
 
 
-@njit(cache=True, inline='always')
-def _nn_edge(net, s, dp, c):
-    return dp * math.exp(mlp_kernel(net, s, abs(dp), c, 0.0))
+# --- dnn: the edge network, four edges at once, no libm call ---------------------------------
+
+#: Hidden widths of ``dnn`` (two layers): fixed, the kernel's code is generated unrolled for
+#: it; :func:`prepare_dnn` refuses an artefact of other widths.
+DNN_WIDTH = 16
+
+_SHIFTER = 6755399441055744.0  # 1.5 * 2^52: x + _SHIFTER rounds x to an integer in the low bits
+_SHIFTER_BITS = 0x4338000000000000
+_LOG2E = 1.4426950408889634
+_LN2_HI = 0.6931471803691238
+_LN2_LO = 1.9082149292705877e-10
+_SQRT2 = 1.4142135623730951
+
+
+def _v4_ir(builder):
+    """IR helpers on ``<4 x double>`` (one lane per metering edge) for :func:`_dnn_flows`."""
+    dbl = llvm_ir.DoubleType()
+    i64 = llvm_ir.IntType(64)
+    i32 = llvm_ir.IntType(32)
+    v4 = llvm_ir.VectorType(dbl, 4)
+    vi4 = llvm_ir.VectorType(i64, 4)
+    undef = llvm_ir.Constant(v4, llvm_ir.Undefined)
+    mask0 = llvm_ir.Constant(llvm_ir.VectorType(i32, 4), [0, 0, 0, 0])
+    module = builder.module
+    fma_fn = cgutils.get_or_insert_function(module, llvm_ir.FunctionType(v4, [v4, v4, v4]),
+                                            'llvm.fma.v4f64')
+
+    def const(x):
+        return llvm_ir.Constant(v4, [float(x)] * 4)
+
+    def iconst(x):
+        return llvm_ir.Constant(vi4, [int(x)] * 4)
+
+    def splat(x):
+        return builder.shuffle_vector(builder.insert_element(undef, x, llvm_ir.Constant(i32, 0)),
+                                      undef, mask0)
+
+    def pack(xs):
+        v = undef
+        for e, x in enumerate(xs):
+            v = builder.insert_element(v, x, llvm_ir.Constant(i32, e))
+        return v
+
+    def fma(a, b, c):
+        return builder.call(fma_fn, [a, b, c])
+
+    def sel(cond, a, b):
+        return builder.select(cond, a, b)
+
+    def poly(x, coeffs):
+        """Horner, highest power first."""
+        p = const(coeffs[0])
+        for c in coeffs[1:]:
+            p = fma(p, x, const(c))
+        return p
+
+    def log(x):
+        """``ln x`` (``x`` normal, > 0) within ~1e-15 absolute near 1, ~1e-13 relative
+        elsewhere: the exponent from the bits, ``2 atanh(z)``, ``z = (m - 1) / (m + 1)``, of the
+        mantissa ``m`` in [sqrt(1/2), sqrt(2)] (odd series to ``z^13``, ``|z| <= 0.172``)."""
+        bits = builder.bitcast(x, vi4)
+        e = builder.sub(builder.and_(builder.lshr(bits, iconst(52)), iconst(0x7FF)),
+                        iconst(1023))
+        m = builder.bitcast(builder.or_(builder.and_(bits, iconst(0xFFFFFFFFFFFFF)),
+                                        iconst(0x3FF0000000000000)), v4)
+        big = builder.fcmp_ordered('>', m, const(_SQRT2))
+        m = sel(big, builder.fmul(m, const(0.5)), m)
+        e = builder.add(e, builder.zext(big, vi4))
+        ef = builder.fsub(builder.bitcast(builder.add(e, iconst(_SHIFTER_BITS)), v4),
+                          const(_SHIFTER))
+        z = builder.fdiv(builder.fsub(m, const(1.0)), builder.fadd(m, const(1.0)))
+        z2 = builder.fmul(z, z)
+        s = poly(z2, [1.0 / 13.0, 1.0 / 11.0, 1.0 / 9.0, 1.0 / 7.0, 0.2, 1.0 / 3.0, 1.0])
+        lm = builder.fmul(builder.fmul(const(2.0), z), s)
+        return builder.fadd(builder.fmul(ef, const(_LN2_HI)),
+                            builder.fadd(lm, builder.fmul(ef, const(_LN2_LO))))
+
+    def exp(y):
+        """``exp(y)`` for ``|y| < 700`` within ~1e-15 relative: ``y = n ln2 + f`` (``n``
+        rounded by adding and subtracting 1.5 * 2^52), the Taylor polynomial of degree 11 of
+        ``exp(f)``, ``|f| <= ln2 / 2``, and ``2^n`` written into the exponent bits."""
+        kd = builder.fadd(builder.fmul(y, const(_LOG2E)), const(_SHIFTER))
+        n = builder.fsub(kd, const(_SHIFTER))
+        f = builder.fsub(builder.fsub(y, builder.fmul(n, const(_LN2_HI))),
+                         builder.fmul(n, const(_LN2_LO)))
+        p = poly(f, [1.0 / math.factorial(i) for i in range(11, -1, -1)])
+        scale = builder.shl(builder.add(builder.sub(builder.bitcast(kd, vi4),
+                                                    iconst(_SHIFTER_BITS)), iconst(1023)),
+                            iconst(52))
+        return builder.fmul(p, builder.bitcast(scale, v4))
+
+    def quintic_v(z):
+        """The hidden activation: ``x (15 - 10 x^2 + 3 x^4) / 8``, ``x`` = ``z`` clipped to
+        [-1, 1] (odd, twice continuously differentiable, saturating like tanh; the training's
+        ``quintic``, :func:`eha_ros.surrogates.training.make_torch_mlp`)."""
+        one, mone = const(1.0), const(-1.0)
+        z = sel(builder.fcmp_ordered('<', z, mone), mone, z)
+        x = sel(builder.fcmp_ordered('>', z, one), one, z)
+        x2 = builder.fmul(x, x)
+        return builder.fmul(x, fma(x2, fma(x2, const(0.375), const(-1.25)), const(1.875)))
+
+    return {'const': const, 'splat': splat, 'pack': pack, 'fma': fma, 'sel': sel, 'log': log,
+            'exp': exp, 'quintic': quintic_v, 'v4': v4, 'i32': i32, 'i64': i64}
+
+
+@intrinsic
+def _dnn_flows(typingctx, w1, b1, w2, b2, w3, k, s4, dp4):
+    """The four edges' flows [m^3/s] through the prepared network, computed on
+    ``<4 x double>`` vectors (one lane per edge) written directly in LLVM IR: the features,
+    both layers (unrolled for :data:`DNN_WIDTH`), the output and its exponential.  ``s4``,
+    ``dp4``: the openings [m] and pressure drops [Pa] of the four edges.  The arithmetic of
+    :func:`dnn_numpy` (fused multiply-adds; logarithm and exponential without libm, which
+    does not vectorise here)."""
+    ret = types.UniTuple(types.float64, 4)
+    sig = ret(w1, b1, w2, b2, w3, k, s4, dp4)
+
+    def codegen(context, builder, signature, args):
+        v = _v4_ir(builder)
+        const, splat, fma, sel = v['const'], v['splat'], v['fma'], v['sel']
+        ptr = [context.make_array(ty)(context, builder, val).data
+               for ty, val in zip(signature.args[:6], args[:6])]
+        pw1, pb1, pw2, pb2, pw3, pk = ptr
+
+        def ld(p, i):
+            return builder.load(builder.gep(p, [llvm_ir.Constant(v['i64'], i)]))
+
+        s = v['pack']([builder.extract_value(args[6], e) for e in range(4)])
+        dp = v['pack']([builder.extract_value(args[7], e) for e in range(4)])
+        r = builder.fmul(s, splat(ld(pk, 3)))
+        is_open = builder.fcmp_ordered('>', s, const(0.0))
+        lg = v['log'](sel(is_open, fma(r, r, const(1.0)), builder.fsub(const(1.0), r)))
+        f_open = sel(is_open, builder.fmul(lg, const(0.5)), const(0.0))
+        f_cov = sel(is_open, const(0.0), lg)
+        adp = builder.bitcast(builder.and_(builder.bitcast(dp, llvm_ir.VectorType(v['i64'], 4)),
+                                           llvm_ir.Constant(llvm_ir.VectorType(v['i64'], 4),
+                                                            [0x7FFFFFFFFFFFFFFF] * 4)),
+                              v['v4'])
+        dpm = splat(ld(pk, 5))
+        adp = sel(builder.fcmp_ordered('<', adp, dpm), adp, dpm)
+        f_dp = v['log'](fma(adp, splat(ld(pk, 4)), const(1.0)))
+        h = DNN_WIDTH
+        h1 = []
+        for j in range(h):
+            z = fma(splat(ld(pw1, j)), f_open, splat(ld(pb1, j)))
+            z = fma(splat(ld(pw1, h + j)), f_cov, z)
+            h1.append(v['quintic'](fma(splat(ld(pw1, 2 * h + j)), f_dp, z)))
+        y = fma(splat(ld(pk, 6)), f_open, splat(ld(pk, 2)))
+        y = fma(splat(ld(pk, 7)), f_cov, y)
+        y = fma(splat(ld(pk, 8)), f_dp, y)
+        # input-major order: the units' sums are independent chains the core interleaves
+        acc = [splat(ld(pb2, j)) for j in range(h)]
+        for i in range(h):
+            for j in range(h):
+                acc[j] = fma(splat(ld(pw2, i * h + j)), h1[i], acc[j])
+        for j in range(h):
+            y = fma(splat(ld(pw3, j)), v['quintic'](acc[j]), y)
+        q = builder.fmul(dp, v['exp'](y))
+        out = [builder.extract_element(q, llvm_ir.Constant(v['i32'], e)) for e in range(4)]
+        return context.make_tuple(builder, signature.return_type, out)
+
+    return sig, codegen
 
 
 @register_kernel('dnn')
 @njit(cache=True)
 def dnn_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
-    """(Q1L, Q2L) [m^3/s], edges from the network ``ln G(s, |dp|, c)``.
+    """(Q1L, Q2L) [m^3/s], the four edges (1S, 1R, 2R, 2S) through the network ``ln G`` as
+    one batch of four SIMD lanes (:func:`_dnn_flows`).
 
-    ``data = (layout, inputs, output, theta, consts)``, the packed MLP of :mod:`.nn` (its
-    sources 0, 1, 2 read the opening, ``|dp|`` and the clearance) and ``consts = [ps, pr, c]``.
+    ``data = (w1, b1, w2, b2, w3, consts)`` from :func:`prepare_dnn`: the first layer
+    ``(3, DNN_WIDTH)`` on the per-step features of :func:`dnn_features` (the input
+    normalisation and the clearance's feature folded into ``b1``), the second layer
+    ``(DNN_WIDTH, DNN_WIDTH)``, the output row ``w3`` (output normalisation folded in),
+    ``consts = [ps, pr, b3, 1/c, 1/dp0, dp_max, skip_open, skip_cov, skip_dp]`` (``b3`` and
+    the linear skip term with the normalisations folded in).  No libm call.
     """
-    ps = data[4][0]
-    pr = data[4][1]
-    c = data[4][2]
-    net = (data[0], data[1], data[2], data[3])
-    q1l = (_nn_edge(net, xs_m - lap_supply_m, ps - p1_pa, c)
-           - _nn_edge(net, -xs_m - lap_return_m, p1_pa - pr, c))
-    q2l = (_nn_edge(net, xs_m - lap_return_m, p2_pa - pr, c)
-           - _nn_edge(net, -xs_m - lap_supply_m, ps - p2_pa, c))
-    return q1l, q2l
+    k = data[5]
+    ps = k[0]
+    pr = k[1]
+    q1s, q1r, q2r, q2s = _dnn_flows(
+        data[0], data[1], data[2], data[3], data[4], k,
+        (xs_m - lap_supply_m, -xs_m - lap_return_m, xs_m - lap_return_m, -xs_m - lap_supply_m),
+        (ps - p1_pa, p1_pa - pr, p2_pa - pr, ps - p2_pa))
+    return q1s - q1r, q2r - q2s
 
 
 #: Genes of the closed form (:func:`ga_edge_flow`), in order.
@@ -396,10 +577,71 @@ def prepare_dlut(data, meta, p: PlantParams):
     return (table, ic, fc)
 
 
+def dnn_features(s_m, dp_pa, clearance_m, dp_scale_pa: float) -> np.ndarray:
+    """The network inputs of ``dnn`` ``(N, 4)`` (numpy; the kernel computes the same per
+    step, :func:`_dnn_flows`): the opening in units of the clearance, ``r = s / c``, as
+    ``ln(1 + r^2) / 2`` while open (``ln(h / c)``, ``h`` the gap of the truncated cone) and
+    ``ln(1 - r)`` while covered (the laminar covered length), each 0 on the other side;
+    ``ln(1 + min(|dp|, DP_MAX_PA) / dp_scale_pa)``; ``ln c``."""
+    s, dp, c = np.broadcast_arrays(*(np.asarray(a, dtype=float).ravel()
+                                     for a in (s_m, dp_pa, clearance_m)))
+    r = s / c
+    f_open = np.where(s > 0.0, 0.5 * np.log1p(np.maximum(r, 0.0) ** 2), 0.0)
+    f_cov = np.where(s > 0.0, 0.0, np.log1p(np.maximum(-r, 0.0)))
+    f_dp = np.log1p(np.minimum(np.abs(dp), DP_MAX_PA) / dp_scale_pa)
+    return np.stack([f_open, f_cov, f_dp, np.log(c)], axis=1)
+
+
+def dnn_numpy(data, s_m, dp_pa, clearance_m) -> np.ndarray:
+    """Edge flow [m^3/s] of a ``dnn`` artefact's network evaluated as trained (numpy, float64,
+    no folding; the reference the kernel is checked against)."""
+    from .nn import split_weights
+    sizes = [int(v) for v in data[0]]
+    mid, half = (np.asarray(v, dtype=float) for v in data[1])
+    theta = np.asarray(data[3], dtype=float)
+    z = (dnn_features(s_m, dp_pa, clearance_m, float(data[4][0])) - mid) / half
+    h = z
+    layers = split_weights(theta[:-sizes[0]], sizes)
+    for n, (w, b) in enumerate(layers):
+        h = h @ w + b
+        if n < len(layers) - 1:
+            x = np.clip(h, -1.0, 1.0)
+            h = x * (1.875 + x * x * (-1.25 + 0.375 * x * x))
+    y = float(data[2][0]) + float(data[2][1]) * (h[:, 0] + z @ theta[-sizes[0]:])
+    dp = np.broadcast_arrays(np.asarray(dp_pa, dtype=float).ravel(), y)[0]
+    return dp * np.exp(y)
+
+
 @register_preparer('dnn')
 def prepare_dnn(data, meta, p: PlantParams):
-    return tuple(data[:4]) + (np.array([p.supply_pressure_pa, p.return_pressure_pa,
-                                        p.radial_clearance_m]),)
+    """Fold the input and output normalisations and the clearance's feature (constant within
+    a run) into the weights: the kernel's first layer sees the opening and pressure-drop
+    features only, its output is ``ln G`` directly.  ``data = (sizes, input_norm, output_norm,
+    theta, [dp_scale_pa])`` (:func:`.dynamic_train.build_dnn`)."""
+    from .nn import split_weights
+    sizes = [int(v) for v in data[0]]
+    arch = meta.get('architecture', {})
+    act = arch.get('activation')
+    if act != 'quintic' or sizes != [4, DNN_WIDTH, DNN_WIDTH, 1] or not arch.get('skip'):
+        raise SurrogateError(f'dnn artefact has layer widths {sizes}, activation {act!r}; the '
+                             f'kernel evaluates [4, {DNN_WIDTH}, {DNN_WIDTH}, 1], quintic, '
+                             'with the linear skip term: '
+                             'rebuild it (python -m eha_ros.surrogates.dynamic_train dnn)')
+    mid, half = (np.asarray(v, dtype=float) for v in data[1])
+    out_mid, out_half = (float(v) for v in data[2])
+    theta = np.asarray(data[3], dtype=float)
+    (w1, b1), (w2, b2), (w3, b3) = split_weights(theta[:-4], sizes)
+    skip = theta[-4:]
+    dp_scale = float(data[4][0])
+    zc = (math.log(p.radial_clearance_m) - mid[3]) / half[3]
+    w1f = w1[:3] / half[:3, None]
+    b1f = b1 - (mid[:3] / half[:3]) @ w1[:3] + zc * w1[3]
+    b3f = float(b3[0]) - float(skip[:3] @ (mid[:3] / half[:3])) + zc * float(skip[3])
+    consts = np.array([p.supply_pressure_pa, p.return_pressure_pa,
+                       out_mid + out_half * b3f, 1.0 / p.radial_clearance_m,
+                       1.0 / dp_scale, DP_MAX_PA, *(out_half * skip[:3] / half[:3])])
+    return (np.ascontiguousarray(w1f), np.ascontiguousarray(b1f), np.ascontiguousarray(w2),
+            np.ascontiguousarray(b2), np.ascontiguousarray(out_half * w3[:, 0]), consts)
 
 
 @register_preparer('dga')

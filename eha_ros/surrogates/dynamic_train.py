@@ -12,8 +12,9 @@ Error metric
     largest flow at that spool position, since a chamber flow crosses zero at its balance
     pressure).
 
-Build: ``python -m eha_ros.surrogates.dynamic_train [dlut dga dnn]`` (about 1, 1 and 5 minutes
-on two cores); ``bench/surrogates_dynamic.py`` prints the figures.
+Build: ``python -m eha_ros.surrogates.dynamic_train [dlut dga dnn]`` (about 1, 1 and 12
+minutes on two cores; ``dnn`` trains for at most ``DNN_SETTINGS['lm']['time_limit_s']``);
+``bench/surrogates_dynamic.py`` prints the figures.
 """
 
 from __future__ import annotations
@@ -29,12 +30,12 @@ import numpy as np
 from eha_ros.physics import PlantParams, default_params
 
 from .base import load_surrogate, models_dir, save_artefact
-from .dynamic import (DP_MAX_PA, EDGE_PARAMETERS, GA_GENES, edge_conductance, edge_flows,
-                      edge_hash, log_axis, valid_range)
-from .nn import fit_inputs, fit_output, pack, transform_inputs
+from .dynamic import (DNN_WIDTH, DP_MAX_PA, EDGE_PARAMETERS, GA_GENES, dnn_features,
+                      edge_conductance, edge_flows, edge_hash, log_axis, valid_range)
+from .nn import fit_output
 
-__all__ = ['DLUT_GRID', 'DNN_SETTINGS', 'DGA_SETTINGS', 'sample_points', 'edge_errors',
-           'chamber_errors', 'build_dlut', 'build_dnn', 'build_dga', 'build_all']
+__all__ = ['DLUT_GRID', 'DNN_SETTINGS', 'DGA_SETTINGS', 'sample_points', 'loop_points',
+           'edge_errors', 'chamber_errors', 'build_dlut', 'build_dnn', 'build_dga', 'build_all']
 
 #: Table of ``dlut`` (:func:`.dynamic.log_axis`): openings ``|s|`` on ``2^s_log2_cells``
 #: equal cells per octave of ``|s| + 2^s_exp2`` m (cells of 0.06 um within 1.9 um of the
@@ -43,13 +44,16 @@ __all__ = ['DLUT_GRID', 'DNN_SETTINGS', 'DGA_SETTINGS', 'sample_points', 'edge_e
 #: to ``DP_MAX_PA``; clearance log-spaced over its range.
 DLUT_GRID = {'s_exp2': -19, 's_log2_cells': 5, 'dp_exp2': 0, 'dp_log2_cells': 4, 'n_c': 8}
 
-#: Network of ``dnn``.
+#: Network of ``dnn``: widths fixed by its kernel (:data:`.dynamic.DNN_WIDTH`), the quintic
+#: activation the kernel evaluates, a share ``loop_fraction`` of the points where the closed
+#: loop lives (:func:`loop_points`).
 DNN_SETTINGS = {
-    'hidden': [16, 16], 'n_train': 60000, 'n_val': 10000, 'seed': 0,
-    's_scale_m': 1e-6, 'dp_scale_pa': 1e3, 'c_scale_m': 1e-9,
+    'hidden': [DNN_WIDTH, DNN_WIDTH], 'activation': 'quintic', 'n_train': 60000,
+    'n_val': 10000, 'loop_fraction': 0.6, 'seed': 0,
+    'dp_scale_pa': 1e3,
     'algorithm': 'lm',
-    'lm': {'epochs': 600, 'subsample': 15000, 'resample_every': 25, 'max_fail': 100,
-           'time_limit_s': 1800.0},
+    'lm': {'epochs': 2000, 'subsample': 15000, 'resample_every': 25, 'max_fail': 150,
+           'time_limit_s': 660.0},
 }
 
 #: Genetic algorithm of ``dga`` (genes ``asinh`` of the log-scaled coefficients, see
@@ -76,6 +80,19 @@ def sample_points(n: int, rng: np.random.Generator, p: PlantParams):
     c = np.exp(rng.uniform(math.log(lo), math.log(hi), n))
     perm = rng.permutation(n)
     return s[perm], dp[perm], c
+
+
+def loop_points(n: int, rng: np.random.Generator, p: PlantParams):
+    """``n`` random edge inputs where the closed loop spends its time: openings near the
+    edge (half uniform within 10 um, half Laplace-distributed with a 2 um scale: the spool
+    near null, the laps of the wear range), pressure drops uniform over [0, 1.1 x supply]
+    (chambers between return and supply), clearance log-uniform.  Returns ``(s, dp, c)``."""
+    h = n // 2
+    s = np.concatenate([rng.uniform(-10e-6, 10e-6, h), rng.laplace(0.0, 2e-6, n - h)])
+    dp = rng.uniform(0.0, 1.1 * p.supply_pressure_pa, n)
+    lo, hi = valid_range(p)['radial_clearance_m']
+    c = np.exp(rng.uniform(math.log(lo), math.log(hi), n))
+    return s, dp, c
 
 
 def edge_errors(surrogate, n: int = 20000, seed: int = 1, params: PlantParams | None = None):
@@ -298,46 +315,66 @@ def build_dga(params: PlantParams | None = None, settings: dict | None = None):
 
 def build_dnn(params: PlantParams | None = None, settings: dict | None = None,
               threads: int = 2, verbose: bool = False):
-    """Train the edge network ``(asinh(s+/s0), asinh(s-/s0), asinh(|dp|/dp0), asinh(c/c0))
-    -> ln G`` (tanh, ``s+``/``s-`` the open/covered parts of the opening,
-    :func:`.training.fit_network`); returns ``(data, meta)``."""
-    from .training import fit_network
+    """Train the edge network ``features -> ln G`` (:func:`.dynamic.dnn_features`: the open
+    and covered opening in units of the clearance, the pressure drop, the clearance, all
+    logarithmic; quintic activation and a linear skip term, :func:`.training.fit_network`)
+    on points drawn over the validity (:func:`sample_points`) and where the loop lives
+    (:func:`loop_points`); returns ``(data, meta)``."""
+    from .training import fit_network, minmax
     p = params if params is not None else default_params()
     st = dict(DNN_SETTINGS, **(settings or {}))
     rng = np.random.default_rng(st['seed'])
 
     def raw(n):
-        s, dp, c = sample_points(n, rng, p)
-        return np.stack([s, dp, c, np.zeros(n)], axis=1), np.log(edge_conductance(s, dp, c, p))
+        n_loop = int(round(st['loop_fraction'] * n))
+        parts = [sample_points(n - n_loop, rng, p), loop_points(n_loop, rng, p)]
+        s, dp, c = (np.concatenate(a) for a in zip(*parts))
+        return (dnn_features(s, dp, c, st['dp_scale_pa']),
+                np.log(edge_conductance(s, dp, c, p)))
 
-    raw_tr, y_tr = raw(st['n_train'])
-    raw_va, y_va = raw(st['n_val'])
-    inputs = fit_inputs(raw_tr, [0, 0, 1, 2], ['asinh_pos', 'asinh_neg', 'asinh', 'asinh'],
-                        [st['s_scale_m'], st['s_scale_m'], st['dp_scale_pa'], st['c_scale_m']])
+    x_tr, y_tr = raw(st['n_train'])
+    x_va, y_va = raw(st['n_val'])
+    norm = minmax(x_tr)
     output = fit_output(y_tr)
     alg = st['algorithm']
     model, hist, wall = fit_network(
-        transform_inputs(inputs, raw_tr), (y_tr - output[0]) / output[1],
-        transform_inputs(inputs, raw_va), (y_va - output[0]) / output[1],
+        (x_tr - norm[0]) / norm[1], (y_tr - output[0]) / output[1],
+        (x_va - norm[0]) / norm[1], (y_va - output[0]) / output[1],
         hidden=st['hidden'], algorithm=alg, seed=st['seed'], settings=st[alg],
-        threads=threads)
-    data = pack(model.sizes, inputs, output, model.theta.detach().numpy())
+        threads=threads, activation=st['activation'], skip=True)
+    sizes = np.array(model.sizes, dtype=float)
+    theta = model.theta.detach().numpy().copy()
+    data = (sizes, norm, output, theta, np.array([st['dp_scale_pa']]))
     meta = _meta('dnn', p, {
-        'architecture': {'d_in': 4, 'd_hidden': st['hidden'], 'd_out': 1, 'activation': 'tanh',
-                         'output_activation': 'linear',
-                         'n_weights': int(data[3].size)},
+        'architecture': {'d_in': 4, 'd_hidden': st['hidden'], 'd_out': 1,
+                         'activation': st['activation'],
+                         'activation_formula': 'x (15 - 10 x^2 + 3 x^4) / 8, x = clip(z, -1, 1)',
+                         'output_activation': 'linear', 'skip': True,
+                         'skip_note': 'output = network + linear term of the normalised inputs '
+                                      '(the log-log asymptotes of the orifice law are linear)',
+                         'n_weights': int(theta.size)},
         'network_inputs': [
-            {'name': 'opening_m', 'transform': f'asinh(max(s, 0) / {st["s_scale_m"]:g})'},
-            {'name': 'opening_m', 'transform': f'asinh(max(-s, 0) / {st["s_scale_m"]:g}) '
-                                               '(open and covered parts: the kink at s = 0)'},
-            {'name': 'abs_dp_pa', 'transform': f'asinh(|dp| / {st["dp_scale_pa"]:g})'},
-            {'name': 'clearance_m', 'transform': f'asinh(c / {st["c_scale_m"]:g}) (~ ln)'}],
-        'normalisation': 'z = (transform(x) - mid) / half, min-max to [-1, 1] on the training '
-                         'split (data_1 rows [source, transform, scale, mid, half]); '
-                         'ln G = mid + half y (data_2)',
+            {'name': 'opening_m', 'transform': 'ln(1 + (s/c)^2) / 2 if s > 0 else 0 (open: '
+                                               'ln of the gap over the clearance)'},
+            {'name': 'opening_m', 'transform': 'ln(1 - s/c) if s <= 0 else 0 (covered length '
+                                               'over the clearance)'},
+            {'name': 'abs_dp_pa', 'transform': f'ln(1 + min(|dp|, {DP_MAX_PA:g}) / '
+                                               f'{st["dp_scale_pa"]:g})'},
+            {'name': 'clearance_m', 'transform': 'ln c (folded into the first bias and the '
+                                                 'output constant by prepare)'}],
+        'data_layout': 'data_0 layer widths; data_1 input normalisation [mid; half] (2 x 4); '
+                       'data_2 output normalisation [mid, half]; data_3 weights layer by layer '
+                       '(W row-major d_in x d_out, then b), then the skip weights (4); data_4 '
+                       '[dp_scale_pa]',
+        'normalisation': 'z = (feature - mid) / half, min-max to [-1, 1] on the training '
+                         'split; ln G = mid + half y',
         'network_output': 'ln G, G = q / dp [m^3/(s Pa)]',
         'training': {'algorithm': alg, 'settings': st[alg], 'seed': st['seed'],
                      'n_train': st['n_train'], 'n_val': st['n_val'],
+                     'loop_fraction': st['loop_fraction'],
+                     'sampling': 'loop_fraction of the points from loop_points (openings '
+                                 'within ~10 um of the edge, drops up to 1.1 x supply), the '
+                                 'rest from sample_points (the whole validity)',
                      'loss': 'mean squared error of the normalised ln G',
                      'time_s': round(wall, 1), 'threads': threads,
                      'stop': hist.get('stop'), 'epochs': hist.get('epochs')},

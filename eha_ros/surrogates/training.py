@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-__all__ = ['make_torch_mlp', 'torch_from_data', 'train_lm', 'train_adam_lbfgs', 'fit_network',
+__all__ = ['ACTIVATIONS', 'make_torch_mlp', 'torch_from_data', 'train_lm', 'train_adam_lbfgs', 'fit_network',
            'minmax', 'map_split', 'ALGORITHMS']
 
 #: Training algorithms :func:`fit_network` knows.
@@ -41,19 +41,57 @@ def _torch():
     return torch
 
 
-def make_torch_mlp(*, d_in: int, d_hidden: list, d_out: int = 1, seed: int = 0):
-    """A tanh MLP as a torch module (float64) with its weights in one flat parameter ``theta``
-    laid out as the kernel reads them.  Weights: Glorot-uniform from ``seed``, biases zero."""
+#: Hidden-layer activations :func:`make_torch_mlp` knows: ``tanh``, and ``quintic``, the
+#: odd polynomial ``x (15 - 10 x^2 + 3 x^4) / 8`` on [-1, 1] held at +-1 outside (twice
+#: continuously differentiable, no transcendental: what :mod:`.dynamic`'s ``dnn`` kernel
+#: evaluates).
+ACTIVATIONS = ('tanh', 'quintic')
+
+
+def _activation(torch, name):
+    """``(f(z), f'(z))`` of the hidden activation ``name``."""
+    if name == 'tanh':
+        def f(z):
+            return torch.tanh(z)
+
+        def df(z, a):
+            return 1.0 - a * a
+    elif name == 'quintic':
+        def f(z):
+            x = torch.clamp(z, -1.0, 1.0)
+            x2 = x * x
+            return x * (1.875 + x2 * (-1.25 + 0.375 * x2))
+
+        def df(z, a):
+            x = torch.clamp(z, -1.0, 1.0)
+            u = 1.0 - x * x
+            return 1.875 * u * u
+    else:
+        raise ValueError(f'unknown activation {name!r} (known: {", ".join(ACTIVATIONS)})')
+    return f, df
+
+
+def make_torch_mlp(*, d_in: int, d_hidden: list, d_out: int = 1, seed: int = 0,
+                   activation: str = 'tanh', skip: bool = False):
+    """An MLP (hidden activation ``activation``, :data:`ACTIVATIONS`; linear output) as a
+    torch module (float64) with its weights in one flat parameter ``theta`` laid out as the
+    kernel reads them.  With ``skip`` the output also gets a linear term of the inputs, its
+    weights ``(d_in, d_out)`` (row-major) after the last layer's in ``theta``.  Weights:
+    Glorot-uniform from ``seed``, biases and skip weights zero."""
     torch = _torch()
+    act, dact = _activation(torch, activation)
 
     class MLP(torch.nn.Module):
         def __init__(self, *, d_in, d_hidden, d_out):
             super().__init__()
+            self.skip = bool(skip)
             self.config = {'d_in': int(d_in), 'd_hidden': [int(h) for h in d_hidden],
-                           'd_out': int(d_out)}
+                           'd_out': int(d_out), 'activation': activation,
+                           'skip': bool(skip)}
             self.sizes = [self.config['d_in'], *self.config['d_hidden'], self.config['d_out']]
+            self.n_mlp = sum(do * di + do for di, do in zip(self.sizes[:-1], self.sizes[1:]))
             self.theta = torch.nn.Parameter(torch.zeros(
-                sum(do * di + do for di, do in zip(self.sizes[:-1], self.sizes[1:])),
+                self.n_mlp + (self.sizes[0] * self.sizes[-1] if self.skip else 0),
                 dtype=torch.float64))
 
         def layers(self, theta=None):
@@ -73,7 +111,10 @@ def make_torch_mlp(*, d_in: int, d_hidden: list, d_out: int = 1, seed: int = 0):
             for n, (w, b) in enumerate(ws):
                 h = torch.addmm(b, h, w)
                 if n < len(ws) - 1:
-                    h = torch.tanh(h)
+                    h = act(h)
+            if self.skip:
+                theta = self.theta if theta is None else theta
+                h = h + x @ theta[self.n_mlp:].view(self.sizes[0], self.sizes[-1])
             return h
 
         @torch.no_grad()
@@ -82,9 +123,12 @@ def make_torch_mlp(*, d_in: int, d_hidden: list, d_out: int = 1, seed: int = 0):
             respect to ``theta``, by hand: one batched backward sweep per output."""
             ws = self.layers()
             acts = [x]
+            pre = [x]
             h = x
             for w, b in ws[:-1]:
-                h = torch.tanh(torch.addmm(b, h, w))
+                z = torch.addmm(b, h, w)
+                h = act(z)
+                pre.append(z)
                 acts.append(h)
             n_pts = x.shape[0]
             d_out = self.sizes[-1]
@@ -92,7 +136,9 @@ def make_torch_mlp(*, d_in: int, d_hidden: list, d_out: int = 1, seed: int = 0):
             for o in range(d_out):
                 delta = torch.zeros((n_pts, d_out), dtype=x.dtype)
                 delta[:, o] = 1.0
-                k_end = self.theta.numel()
+                k_end = self.n_mlp
+                if self.skip:
+                    jac[:, o, k_end:] = (x[:, :, None] * delta[:, None, :]).reshape(n_pts, -1)
                 for n in range(len(ws) - 1, -1, -1):
                     w, _ = ws[n]
                     di, do = w.shape
@@ -101,7 +147,7 @@ def make_torch_mlp(*, d_in: int, d_hidden: list, d_out: int = 1, seed: int = 0):
                         acts[n][:, :, None] * delta[:, None, :]).reshape(n_pts, di * do)
                     k_end -= do + do * di
                     if n > 0:
-                        delta = (delta @ w.T) * (1.0 - acts[n] ** 2)
+                        delta = (delta @ w.T) * dact(pre[n], acts[n])
             return jac.reshape(n_pts * d_out, -1)
 
     model = MLP(d_in=d_in, d_hidden=d_hidden, d_out=d_out)
@@ -320,11 +366,14 @@ def minmax(a) -> np.ndarray:
 
 
 def fit_network(x_tr, y_tr, x_val=None, y_val=None, *, hidden, algorithm: str, seed: int,
-                settings: dict, threads: int = 2, w_tr=None, w_val=None):
+                settings: dict, threads: int = 2, w_tr=None, w_val=None,
+                activation: str = 'tanh', skip: bool = False):
     """Build a tanh MLP of hidden widths ``hidden`` and train it with ``algorithm`` (``'lm'``
     or ``'adam_lbfgs'``, keyword ``settings`` of :func:`train_lm` / :func:`train_adam_lbfgs`)
     on already normalised numpy arrays ``x`` ``(N, d_in)`` and ``y`` ``(N, d_out)``; ``w_tr``,
-    ``w_val``: optional point weights (rescaled to mean 1 on the training split).
+    ``w_val``: optional point weights (rescaled to mean 1 on the training split);
+    ``activation``: the hidden layers' (:data:`ACTIVATIONS`); ``skip``: a linear input-output
+    term besides the network (:func:`make_torch_mlp`).
 
     Returns ``(model, history, wall_s)``.
     """
@@ -345,7 +394,7 @@ def fit_network(x_tr, y_tr, x_val=None, y_val=None, *, hidden, algorithm: str, s
         w_tr = np.asarray(w_tr) * scale
         w_val = np.asarray(w_val) * scale if w_val is not None else None
     model = make_torch_mlp(d_in=np.shape(x_tr)[1], d_hidden=hidden, d_out=y_tr.shape[1],
-                           seed=seed)
+                           seed=seed, activation=activation, skip=skip)
     train = train_lm if algorithm == 'lm' else train_adam_lbfgs
     t0 = time.perf_counter()
     hist = train(model, to_t(x_tr), to_t(y_tr), x_val=to_t(x_val), y_val=to_t(y_val),
