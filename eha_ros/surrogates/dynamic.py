@@ -308,11 +308,28 @@ def _v4_ir(builder):
         return builder.select(cond, a, b)
 
     def poly(x, coeffs):
-        """Horner, highest power first."""
-        p = const(coeffs[0])
-        for c in coeffs[1:]:
-            p = fma(p, x, const(c))
-        return p
+        """Polynomial, coefficients highest power first, by Estrin's scheme (pairs
+        ``c_2k + c_2k+1 x``, then powers ``x^2, x^4, ...``: a short dependency chain, the
+        plant's next step waits for this one)."""
+        terms = [const(c) for c in reversed(coeffs)]  # lowest power first
+        xp = x
+        while len(terms) > 1:
+            nxt = [fma(terms[i + 1], xp, terms[i]) for i in range(0, len(terms) - 1, 2)]
+            if len(terms) % 2:
+                nxt.append(terms[-1])
+            terms = nxt
+            if len(terms) > 1:
+                xp = builder.fmul(xp, xp)
+        return terms[0]
+
+    def total(vals):
+        """Sum by a balanced tree (short dependency chain)."""
+        while len(vals) > 1:
+            nxt = [builder.fadd(vals[i], vals[i + 1]) for i in range(0, len(vals) - 1, 2)]
+            if len(vals) % 2:
+                nxt.append(vals[-1])
+            vals = nxt
+        return vals[0]
 
     def log(x):
         """``ln x`` (``x`` normal, > 0) within ~1e-15 absolute near 1, ~1e-13 relative
@@ -360,6 +377,7 @@ def _v4_ir(builder):
         return builder.fmul(x, fma(x2, fma(x2, const(0.375), const(-1.25)), const(1.875)))
 
     return {'const': const, 'splat': splat, 'pack': pack, 'fma': fma, 'sel': sel, 'log': log,
+            'total': total,
             'exp': exp, 'quintic': quintic_v, 'v4': v4, 'i32': i32, 'i64': i64}
 
 
@@ -407,13 +425,19 @@ def _dnn_flows(typingctx, w1, b1, w2, b2, w3, k, s4, dp4):
         y = fma(splat(ld(pk, 6)), f_open, splat(ld(pk, 2)))
         y = fma(splat(ld(pk, 7)), f_cov, y)
         y = fma(splat(ld(pk, 8)), f_dp, y)
-        # input-major order: the units' sums are independent chains the core interleaves
-        acc = [splat(ld(pb2, j)) for j in range(h)]
-        for i in range(h):
-            for j in range(h):
-                acc[j] = fma(splat(ld(pw2, i * h + j)), h1[i], acc[j])
+        # each unit's sum in four partial chains, the output's by a tree: the plant's next
+        # step waits for this one, so the dependency chains are kept short
+        outs = [y]
         for j in range(h):
-            y = fma(splat(ld(pw3, j)), v['quintic'](acc[j]), y)
+            part = []
+            for i0 in range(4):
+                a = splat(ld(pb2, j)) if i0 == 0 else None
+                for i in range(i0, h, 4):
+                    w = splat(ld(pw2, i * h + j))
+                    a = builder.fmul(w, h1[i]) if a is None else fma(w, h1[i], a)
+                part.append(a)
+            outs.append(builder.fmul(splat(ld(pw3, j)), v['quintic'](v['total'](part))))
+        y = v['total'](outs)
         q = builder.fmul(dp, v['exp'](y))
         out = [builder.extract_element(q, llvm_ir.Constant(v['i32'], e)) for e in range(4)]
         return context.make_tuple(builder, signature.return_type, out)
