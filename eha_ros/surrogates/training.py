@@ -1,11 +1,14 @@
-"""Training of the project's tanh networks (torch, imported inside the functions only): the
-fluid surrogates of :mod:`.nn_train`, the dynamic edge network of :mod:`.dynamic` and the
+"""Training of the project's networks (torch, imported inside the functions only): the fluid
+surrogates of :mod:`.nn_train`, the dynamic edge network of :mod:`.dynamic` and the
 wear-diagnosis network of :mod:`.diagnostics` all train through :func:`fit_network`.
 
 Model
-    :func:`make_torch_mlp`: a tanh MLP (float64, linear output) whose weights live in one flat
-    parameter ``theta`` laid out as the numba kernel (:func:`eha_ros.surrogates.nn.mlp_kernel`)
-    and the numpy forward pass (:func:`eha_ros.surrogates.nn.mlp_forward`) read them.
+    :func:`make_torch_mlp`: an MLP (float64, tanh hidden layers unless told otherwise, linear
+    output) whose weights live in one flat parameter ``theta`` laid out as the numba kernel
+    (:func:`eha_ros.surrogates.nn.mlp_kernel`) and the numpy forward pass
+    (:func:`eha_ros.surrogates.nn.mlp_forward`) read them.  ``dnn`` (:mod:`.dynamic`) uses the
+    ``quintic`` activation (:data:`ACTIVATIONS`) and a linear skip term, which its own kernel
+    and :func:`eha_ros.surrogates.dynamic.dnn_numpy` read.
 
 Algorithms
     :func:`train_lm`, Levenberg-Marquardt as MATLAB's ``trainlm`` (damping ``mu`` multiplied by
@@ -29,8 +32,8 @@ import time
 
 import numpy as np
 
-__all__ = ['ACTIVATIONS', 'make_torch_mlp', 'torch_from_data', 'train_lm', 'train_adam_lbfgs', 'fit_network',
-           'minmax', 'map_split', 'ALGORITHMS']
+__all__ = ['ACTIVATIONS', 'make_torch_mlp', 'torch_from_data', 'train_lm', 'train_adam_lbfgs',
+           'fit_network', 'minmax', 'map_split', 'ALGORITHMS']
 
 #: Training algorithms :func:`fit_network` knows.
 ALGORITHMS = ('lm', 'adam_lbfgs')
