@@ -3,12 +3,18 @@ JSON object (:mod:`eha_ros.surrogates.inloop` defines every figure).
 
 Cases: the reference's nine scenarios, ``step_1mm`` (large signal) and ``chirp_0p1``, at
 nominal wear and two off-grid wear points (off the wear grids of every table).  Noise-free:
-errors, yardstick, bounds and features per case, every model, and the dynamic surrogates again
-at ``--large-dt`` (2 us) against hf at 1 us.  With noise (nominal wear): ``--seeds`` seeds.
+errors, yardstick, bounds and features per case, every model, and hf and the dynamic
+surrogates again at each of ``--large-dts`` (2, 5 and 10 us) against hf at 1 us, which gives
+``largest_steps``: per model the largest step meeting the bounds in every case.  With noise
+(nominal wear): ``--seeds`` seeds (20: the errors are heavy-tailed on small-signal holds, see
+:mod:`eha_ros.surrogates.inloop`) for ``--noise-models`` (default all but the reference's
+networks ``nn``, ``nn2``, which miss the noise-free bounds by far and cost 15-20x hf).
 Cost: wall seconds per simulated second of each run against hf's (JIT compilation excluded:
-every model runs once before).
+each process runs every model once before); ``bench/plant_rtf.py`` measures cost on its own.
+``--jobs 2`` runs the cases in two processes (158 s on the 2-core reference machine).
 
-    nice python bench/inloop.py [--models dlut,dnn,dga,lut,ga,nn,nn2] [--seeds 5]
+    nice python bench/inloop.py [--models dlut,dnn,dga,lut,ga,nn,nn2] [--seeds 20]
+        [--noise-models dlut,dnn,dga,lut,ga] [--large-dts 2e-6,5e-6,1e-5]
         [--scenarios a,b] [--no-noise] [--wear nominal|all] [--jobs 2] [--out FILE]
 """
 
