@@ -241,6 +241,8 @@ def dlut_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
     d1r = p1_pa - pr
     d2r = p2_pa - pr
     d2s = ps - p2_pa
+    # the four edges written out: a helper taking the table array would cost reference
+    # counting on every call, as an array passed into an inlined function with branches does
     j, b = _dlut_col(abs(d1s), p_off, p_sh, p_c0, p_mask, p_m, p_kmax, p_last, p_inv)
     c = np.uint64((r1s + j) * 4)
     q1s = (tab[c] + b * tab[c + 1]) + a1s * (tab[c + 2] + b * tab[c + 3])
