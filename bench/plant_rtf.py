@@ -59,9 +59,9 @@ def main():
         'real_time_factor']
     models = [m for m in args.models.split(',') if m]
     out['models'] = {}
+    large = [float(v) for v in args.large_dts.split(',') if v]
     for model in ['hf'] + models:
         fluid = None if model == 'hf' else load_surrogate(model, p)
-        large = [float(v) for v in args.large_dts.split(',') if v]
         dts = [1e-6] + (large if model == 'hf' or model in DYNAMIC_MODELS else [])
         for dt in dts:
             simulate(p, 'step_0p1', duration_s=2e-3, dt_s=dt, controller_period_s=1e-3,

@@ -621,18 +621,12 @@ def dnn_features(s_m, dp_pa, clearance_m, dp_scale_pa: float) -> np.ndarray:
 def dnn_numpy(data, s_m, dp_pa, clearance_m) -> np.ndarray:
     """Edge flow [m^3/s] of a ``dnn`` artefact's network evaluated as trained (numpy, float64,
     no folding; the reference the kernel is checked against)."""
-    from .nn import split_weights
+    from .nn import mlp_forward, split_weights
     sizes = [int(v) for v in data[0]]
     mid, half = (np.asarray(v, dtype=float) for v in data[1])
     theta = np.asarray(data[3], dtype=float)
     z = (dnn_features(s_m, dp_pa, clearance_m, float(data[4][0])) - mid) / half
-    h = z
-    layers = split_weights(theta[:-sizes[0]], sizes)
-    for n, (w, b) in enumerate(layers):
-        h = h @ w + b
-        if n < len(layers) - 1:
-            x = np.clip(h, -1.0, 1.0)
-            h = x * (1.875 + x * x * (-1.25 + 0.375 * x * x))
+    h = mlp_forward(split_weights(theta[:-sizes[0]], sizes), z, 'quintic')
     y = float(data[2][0]) + float(data[2][1]) * (h[:, 0] + z @ theta[-sizes[0]:])
     dp = np.broadcast_arrays(np.asarray(dp_pa, dtype=float).ravel(), y)[0]
     return dp * np.exp(y)

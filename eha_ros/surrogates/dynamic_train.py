@@ -12,8 +12,8 @@ Error metric
     largest flow at that spool position, since a chamber flow crosses zero at its balance
     pressure).
 
-Build: ``python -m eha_ros.surrogates.dynamic_train [dlut dga dnn]`` (about 1, 1 and 12
-minutes on two cores; ``dnn`` trains for at most ``DNN_SETTINGS['lm']['time_limit_s']``);
+Build: ``python -m eha_ros.surrogates.dynamic_train [dlut dga dnn]`` (about 10 s, 2 min and 12
+min on two cores; ``dnn`` trains for at most ``DNN_SETTINGS['lm']['time_limit_s']``);
 ``bench/surrogates_dynamic.py`` prints the figures.
 """
 

@@ -43,7 +43,7 @@ from numba.extending import intrinsic
 from .base import SurrogateError, register_kernel
 
 __all__ = ['INPUT_NAMES', 'INPUT_UNITS', 'MAX_WIDTH', 'LINEAR', 'ASINH', 'mlp_kernel',
-           'mlp_forward', 'mlp_numpy', 'pack', 'unpack', 'split_weights', 'transform_inputs',
+           'mlp_forward', 'quintic', 'NUMPY_ACTIVATIONS', 'mlp_numpy', 'pack', 'unpack', 'split_weights', 'transform_inputs',
            'fit_inputs', 'fit_output']
 
 #: The kernel's inputs, in order, and their units.
@@ -204,13 +204,26 @@ def transform_inputs(inputs, raw):
     return z
 
 
-def mlp_forward(weights, h):
-    """Numpy forward pass of a tanh MLP on normalised inputs ``h`` ``(N, d_0)``: ``weights`` a
-    list of ``(W (d_in, d_out), b)``, tanh on every layer but the last (linear)."""
+def quintic(z):
+    """The ``quintic`` hidden activation (:data:`eha_ros.surrogates.training.ACTIVATIONS`):
+    ``x (15 - 10 x^2 + 3 x^4) / 8`` on ``x = clip(z, -1, 1)`` (numpy)."""
+    x = np.clip(z, -1.0, 1.0)
+    return x * (1.875 + x * x * (-1.25 + 0.375 * x * x))
+
+
+#: Hidden activations of :func:`mlp_forward` by name.
+NUMPY_ACTIVATIONS = {'tanh': np.tanh, 'quintic': quintic}
+
+
+def mlp_forward(weights, h, activation: str = 'tanh'):
+    """Numpy forward pass of an MLP on normalised inputs ``h`` ``(N, d_0)``: ``weights`` a
+    list of ``(W (d_in, d_out), b)``, the hidden ``activation`` (:data:`NUMPY_ACTIVATIONS`)
+    on every layer but the last (linear)."""
+    act = NUMPY_ACTIVATIONS[activation]
     for n, (w, b) in enumerate(weights):
         h = h @ w + b
         if n < len(weights) - 1:
-            h = np.tanh(h)
+            h = act(h)
     return h
 
 

@@ -371,7 +371,7 @@ def minmax(a) -> np.ndarray:
 def fit_network(x_tr, y_tr, x_val=None, y_val=None, *, hidden, algorithm: str, seed: int,
                 settings: dict, threads: int = 2, w_tr=None, w_val=None,
                 activation: str = 'tanh', skip: bool = False):
-    """Build a tanh MLP of hidden widths ``hidden`` and train it with ``algorithm`` (``'lm'``
+    """Build an MLP of hidden widths ``hidden`` and train it with ``algorithm`` (``'lm'``
     or ``'adam_lbfgs'``, keyword ``settings`` of :func:`train_lm` / :func:`train_adam_lbfgs`)
     on already normalised numpy arrays ``x`` ``(N, d_in)`` and ``y`` ``(N, d_out)``; ``w_tr``,
     ``w_val``: optional point weights (rescaled to mean 1 on the training split);
