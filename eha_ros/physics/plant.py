@@ -27,6 +27,7 @@ import numpy as np
 from numba import njit
 
 from .commands import Scenario, command_value, get_scenario
+from .events import EventSchedule
 from .jack import jack_step, quantise, surface_position
 from .params import ParameterError, PlantParams, default_params
 from .servovalve import (coil_current, flapper_damping, flapper_step, magnetic_stiffness,
@@ -140,7 +141,7 @@ NO_FLUID_DATA = (np.zeros(1),)
 
 @njit  # not cached on disk: see below
 def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, dt_ns, n_steps,
-         steps_per_tick, rec_every, rec, fluid_fn, flows_fn, fluid_data, fluid_mode):
+         steps_per_tick, rec_every, rec_wait, rec, fluid_fn, flows_fn, fluid_data, fluid_mode):
     """Advance the plant state ``s`` (in place) by ``n_steps`` steps of ``dt``.
 
     ``fluid_mode`` 0: the high-fidelity fluid block.  1 (algebraic surrogate): the block is
@@ -153,7 +154,8 @@ def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, d
     ``steps_per_tick = 0``: open loop, the coil current command ``i_cmd`` is held.  Otherwise
     the controller (state ``ctrl``) runs every ``steps_per_tick`` steps on the quantised
     sensor against the command ``(kind, args, com_t, com_v)``, and every ``rec_every``-th
-    tick is recorded into ``rec`` before the plant moves on.
+    tick, the first after ``rec_wait`` unrecorded ticks, is recorded into ``rec`` (from its
+    row 0) before the plant moves on.
 
     ``noise[k]`` is the noise sample covering ``[k noise_dt, (k+1) noise_dt)``; ``n0`` is the
     global index of the first step.  The time of step ``n`` is ``(n dt_ns) 1e-9`` s, from the
@@ -204,7 +206,7 @@ def _run(s, ctrl, i_cmd, p, kind, args, com_t, com_v, noise, noise_dt, n0, dt, d
     done = 0
     row = 0
     until_tick = 0
-    until_rec = 0
+    until_rec = rec_wait
     for j in range(n_steps):
         n = n0 + j
         if steps_per_tick > 0:
@@ -422,7 +424,12 @@ def _diverged(p_status: int, t_s: float) -> SimulationDiverged:
 
 @dataclasses.dataclass
 class SimResult:
-    """Time histories of a closed-loop run; ``data[field]`` for each of ``RECORD_FIELDS``."""
+    """Time histories of a closed-loop run; ``data[field]`` for each of ``RECORD_FIELDS``.
+
+    ``params`` are those the run started with; ``events`` lists the parameter changes that
+    took effect, in order, as ``{'tick': k, 'time_s': tick time [s], 'changes': {name:
+    value}}``.
+    """
 
     data: dict
     params: PlantParams
@@ -431,6 +438,7 @@ class SimResult:
     controller_period_s: float
     seed: int
     wall_time_s: float
+    events: list = dataclasses.field(default_factory=list)
 
     def __getitem__(self, key):
         return self.data[key]
@@ -493,7 +501,7 @@ class Plant:
         status, done, _, _ = _run(self.state, self._ctrl, float(current_command_a),
                                   self.params, 0, _EMPTY_ARGS, _EMPTY, _EMPTY, noise,
                                   self.params.noise_sample_time_s, self.steps, self.dt_s,
-                                  self.dt_ns, int(n_steps), 0, 1, _EMPTY.reshape(0, N_REC),
+                                  self.dt_ns, int(n_steps), 0, 1, 0, _EMPTY.reshape(0, N_REC),
                                   self.fluid_fn, self.flows_fn, self.fluid_data,
                                   self.fluid_mode)
         self.steps += done
@@ -545,7 +553,7 @@ class PositionController:
 
 def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=None,
              dt_s: float = 1e-6, seed: int = 0, controller_period_s: float | None = None,
-             record_dt_s: float | None = 1e-4, fluid=None) -> SimResult:
+             record_dt_s: float | None = 1e-4, fluid=None, events=None) -> SimResult:
     """Closed-loop run: ``(params, scenario, duration, dt, seed) -> time histories``.
 
     Parameters
@@ -570,6 +578,15 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
         algebraic, ``kernel(data, xs_m, q_m3_s, overlap_m, clearance_m) -> p12_pa``, or dynamic
         (``family = 'dynamic'``), the metering-edge flows only (see ``_run``); the
         high-fidelity block when ``None``.
+    events : optional
+        Parameter changes during the run: an :class:`~.events.EventSchedule` or what one is
+        built from (events, ``(t_s, {name: value})`` pairs, ``'T:name=value'`` texts) of the
+        parameters in ``PLANT_RUNTIME`` and ``CONTROLLER_RUNTIME``.  Each takes effect at the
+        first controller tick whose time is at least ``t_s``, before that tick's controller
+        update and plant steps, as :meth:`Plant.set_params` and a new
+        ``PositionController.params`` between ticks would; the plant starts at rest for
+        ``params`` whatever changes at t = 0.  All are checked (ranges, stability limit, a
+        surrogate's validity) before the run; those due after its end are not applied.
     """
     p = params if params is not None else default_params()
     sc = get_scenario(scenario)
@@ -578,6 +595,7 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
         raise ParameterError(f'duration_s = {duration_s} must be a positive number of seconds')
     fluid_fn, flows_fn, fluid_data, fluid_mode = _fluid_args(fluid, p)
     check_dt(p, dt_s, fluid)
+    dt_ns = dt_to_ns(dt_s)
     period = dt_s if controller_period_s is None else float(controller_period_s)
     steps_per_tick = int(round(period / dt_s))
     if steps_per_tick < 1 or abs(steps_per_tick * dt_s - period) > 1e-9 * period:
@@ -588,6 +606,18 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
         rec_every = 1
     else:
         rec_every = max(1, int(round(record_dt_s / period)))
+    # the run in segments of constant parameters: tick -> (parameters, fluid data) from it on
+    schedule = EventSchedule(events or (), period_ns=steps_per_tick * dt_ns)
+    segments = {0: (p, fluid_data)}
+    applied = []
+    for ev, q in zip(schedule, schedule.validate(p)):
+        k = schedule.tick_of(ev)
+        if k < n_ticks:
+            data = _fluid_args(fluid, q)[2]
+            check_dt(q, dt_s, fluid)
+            segments[k] = (q, data)
+            applied.append({'tick': k, 'time_s': (k * steps_per_tick * dt_ns) * 1e-9,
+                            'changes': ev.as_dict()})
     n_rows = n_ticks // rec_every + 2
     rec = np.full((n_rows, N_REC), np.nan)
     state = initial_state(p)
@@ -596,20 +626,23 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     samples = noise.samples_until(n_ticks * steps_per_tick * dt_s)
     kind, args, com_t, com_v = sc.arrays()
     t0 = time.perf_counter()
-    n_steps = n_ticks * steps_per_tick
-    status, n_done, rows, i_last = _run(state, ctrl, 0.0, p, kind, args, com_t, com_v,
-                                        samples, p.noise_sample_time_s, 0, dt_s,
-                                        dt_to_ns(dt_s), n_steps,
-                                        steps_per_tick, rec_every, rec, fluid_fn, flows_fn,
-                                        fluid_data, fluid_mode)
+    rows, i_cmd = 0, 0.0
+    ends = list(segments)[1:] + [n_ticks]
+    for (k0, (q, data)), k1 in zip(segments.items(), ends):
+        n0 = k0 * steps_per_tick
+        status, done, new_rows, i_cmd = _run(
+            state, ctrl, i_cmd, q, kind, args, com_t, com_v, samples, p.noise_sample_time_s,
+            n0, dt_s, dt_ns, (k1 - k0) * steps_per_tick, steps_per_tick, rec_every,
+            -k0 % rec_every, rec[rows:], fluid_fn, flows_fn, data, fluid_mode)
+        rows += new_rows
+        if status:
+            raise _diverged(status, ((n0 + done) * dt_ns) * 1e-9)
     wall = time.perf_counter() - t0
-    if status:
-        raise _diverged(status, (n_done * dt_to_ns(dt_s)) * 1e-9)
     if n_ticks % rec_every == 0:  # close the record with the final state
-        t_end = (n_done * dt_to_ns(dt_s)) * 1e-9
-        _record(rec, rows, t_end, sc.value(t_end), i_last, state, p)
+        t_end = (n_ticks * steps_per_tick * dt_ns) * 1e-9
+        _record(rec, rows, t_end, sc.value(t_end), i_cmd, state, q)
         rows += 1
     data = {name: rec[:rows, j].copy() for j, name in enumerate(RECORD_FIELDS)}
     return SimResult(data=data, params=p, scenario=sc, dt_s=float(dt_s),
                      controller_period_s=steps_per_tick * dt_s, seed=int(seed),
-                     wall_time_s=wall)
+                     wall_time_s=wall, events=applied)
