@@ -16,9 +16,16 @@ Topic                          Type                                   Rate
 ``/eha/health``                ``eha_ros/msg/HealthStatus``           1-10 Hz
 ``/diagnostics``               ``diagnostic_msgs/msg/DiagnosticArray`` 1 kHz
 ``/clock``                     ``rosgraph_msgs/msg/Clock``            1 kHz
+``/eha/events``                ``eha_ros/msg/GraphEvent``             per event
 =============================  =====================================  ==========
 
-Every topic is reliable, keeps the last 1000 samples and is volatile.  The depth is what a
+Every topic but ``/eha/events`` is reliable, keeps the last 1000 samples and is volatile.
+``/eha/events`` (each parameter change that took effect, with its tick) is latched
+(transient local): a reader that joins late still receives every event.
+
+Besides these, ``/eha/handshake`` (``diagnostic_msgs/msg/DiagnosticStatus``, latched) carries
+the start-up handshake (:mod:`eha_ros.nodes.handshake`); it is the graph's control channel,
+not recorded.  The depth is what a
 subscriber outside the loop (the recorder, the health monitor, a test's collector) may fall
 behind without losing a sample: 1 s at 1 kHz.  In lockstep the loop runs as fast as the
 controller answers, so a slower reader falls behind by however long it is slower.
@@ -30,7 +37,8 @@ import importlib
 from typing import Dict, Optional
 
 __all__ = ['NAMESPACE', 'TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOPIC_HEALTH',
-           'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'TOPICS', 'RATES_HZ', 'QOS_DEPTH',
+           'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'TOPIC_EVENTS', 'TOPIC_HANDSHAKE', 'TOPICS',
+           'LATCHED_TOPICS', 'LATCHED_DEPTH', 'topic_qos', 'RATES_HZ', 'QOS_DEPTH',
            'QOS_RELIABILITY', 'QOS_DURABILITY', 'QOS_HISTORY', 'graph_qos', 'topics_in',
            'normalize_type', 'message_class', 'MODES', 'MODELS', 'REFERENCE_MODELS',
            'DYNAMIC_MODELS', 'ALGEBRAIC_MODELS',
@@ -47,6 +55,8 @@ TOPIC_STATE = '/eha/state'
 TOPIC_HEALTH = '/eha/health'
 TOPIC_DIAGNOSTICS = '/diagnostics'
 TOPIC_CLOCK = '/clock'
+TOPIC_EVENTS = '/eha/events'
+TOPIC_HANDSHAKE = '/eha/handshake'
 
 #: Every graph topic and its type, ``pkg/msg/Type``.
 TOPICS: Dict[str, str] = {
@@ -56,7 +66,14 @@ TOPICS: Dict[str, str] = {
     TOPIC_HEALTH: 'eha_ros/msg/HealthStatus',
     TOPIC_DIAGNOSTICS: 'diagnostic_msgs/msg/DiagnosticArray',
     TOPIC_CLOCK: 'rosgraph_msgs/msg/Clock',
+    TOPIC_EVENTS: 'eha_ros/msg/GraphEvent',
 }
+
+#: Latched topics (transient local): a late reader receives what was published before it.
+LATCHED_TOPICS = frozenset((TOPIC_EVENTS, TOPIC_HANDSHAKE))
+
+#: Samples a latched topic keeps for late readers (per publisher).
+LATCHED_DEPTH = 1000
 
 #: Nominal publication rate of every topic, Hz (health: the fastest it is published).
 RATES_HZ: Dict[str, float] = {
@@ -66,6 +83,7 @@ RATES_HZ: Dict[str, float] = {
     TOPIC_HEALTH: 10.0,
     TOPIC_DIAGNOSTICS: 1000.0,
     TOPIC_CLOCK: 1000.0,
+    TOPIC_EVENTS: 0.0,
 }
 
 #: The graph's nodes, by their ROS names (and console scripts).
@@ -125,6 +143,19 @@ def graph_qos(depth: Optional[int] = None):
                       depth=QOS_DEPTH if depth is None else int(depth),
                       reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.VOLATILE)
+
+
+def topic_qos(topic: str, depth: Optional[int] = None):
+    """The QoS of graph topic ``topic`` (any namespace): latched for :data:`LATCHED_TOPICS`,
+    else :func:`graph_qos`."""
+    from rclpy.qos import DurabilityPolicy
+
+    qos = graph_qos(depth)
+    if topic.rsplit('/', 1)[-1] in {t.rsplit('/', 1)[-1] for t in LATCHED_TOPICS}:
+        qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
+        if depth is None:
+            qos.depth = LATCHED_DEPTH
+    return qos
 
 
 def topics_in(namespace: str = NAMESPACE) -> Dict[str, str]:

@@ -31,32 +31,63 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ['GraphConfig', 'GraphResult', 'GraphError', 'run_graph']
+__all__ = ['GraphConfig', 'GraphResult', 'GraphError', 'GraphConfigError', 'GraphDataLoss',
+           'run_graph', 'declared_parameters', 'COLLECTOR']
 
 STATE_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_s',
                 'spool_position_m', 'flapper_position_m', 'p1_pa', 'p2_pa', 'p12_pa',
                 'load_flow_m3_s', 'coil_current_a', 'torque_motor_force_n', 'sim_time_s')
 
+#: The harness's own node, which collects what the graph publishes.
+COLLECTOR = 'eha_harness_collector'
 
 #: After a stop request, how long node processes get to end on their own before the harness
 #: signals them (s): a second SIGINT could hit a recorder after it restored its handlers.
 _GRACE_S = 3.0
+
+#: How long the harness waits, past the plant's own handshake timeout, for the start (s).
+_START_MARGIN_S = 15.0
+
+#: Nodes whose ``events`` parameter takes a schedule, and what each may change.
+EVENT_NODES = ('servovalve_plant', 'controller')
+
+#: Real-time settings ``GraphConfig.rt`` gives each ticking node.
+TICKING_NODES = ('command_generator', 'controller', 'servovalve_plant')
 
 
 class GraphError(RuntimeError):
     """The graph did not start, stalled, or a node failed."""
 
 
+class GraphConfigError(GraphError, ValueError):
+    """A :class:`GraphConfig` asks for something no node has (an unknown node, parameter or
+    event target): refused before anything starts."""
+
+
+class GraphDataLoss(GraphError):
+    """A lockstep run ended with messages missing; ``result`` holds what arrived."""
+
+    def __init__(self, message: str, result: 'GraphResult'):
+        super().__init__(message)
+        self.result = result
+
+
 @dataclasses.dataclass
 class GraphConfig:
     """What to run.  ``plant`` holds extra plant parameters (wear), ``health`` starts the
-    health monitor (``health_params`` for its parameters); in lockstep the plant waits for the
-    controller, the harness's collector, the health monitor and ``recorders`` more state
-    subscribers before its first tick, so nobody misses it.  ``events`` are
-    ``(t_s, node_name, {parameter: value})``: set once the plant's state passes ``t_s`` (run-time
-    degradation).  ``record``: an MCAP file the ``recorder`` node writes every graph topic to
-    (it must not exist).  ``node_params``: ``{node: {parameter: value}}`` applied last, over
-    what the fields above set (e.g. from a ROS params file, ``config/graph.yaml``)."""
+    health monitor (``health_params`` for its parameters).  ``events`` are ``(t_s, node,
+    {parameter: value})`` with node ``servovalve_plant`` (wear, degradation, load) or
+    ``controller`` (gains): handed to the node before the run and applied at the first tick
+    whose time is at least ``t_s``, in either mode, after the scenario's own events.
+    ``record``: an MCAP file the ``recorder`` node writes every graph topic to (it must not
+    exist).  ``node_params``: ``{node: {parameter: value}}`` applied last, over what the fields
+    above set (e.g. from a ROS params file, ``config/graph.yaml``).  ``rt``: the ticking nodes
+    get the real-time settings :data:`eha_ros.realtime.RT_DEFAULTS`.  The graph starts when
+    every node's endpoints have matched (:mod:`eha_ros.nodes.handshake`), at most
+    ``handshake_timeout_s`` after the nodes were started.
+
+    A parameter no node declares, an unknown node or an event parameter the node cannot change
+    while running is refused (:class:`GraphConfigError`) before anything starts."""
 
     scenario: str = 'step_0p1'
     model: str = 'hf'
@@ -69,10 +100,11 @@ class GraphConfig:
     health: bool = False
     health_params: dict = dataclasses.field(default_factory=dict)
     params_file: str = ''
-    recorders: int = 0
     events: list = dataclasses.field(default_factory=list)
     record: str = ''
     node_params: dict = dataclasses.field(default_factory=dict)
+    rt: bool = False
+    handshake_timeout_s: float = 60.0
 
     def resolved_duration(self) -> float:
         if self.duration_s is not None:
@@ -80,51 +112,123 @@ class GraphConfig:
         from eha_ros.physics import get_scenario
         return get_scenario(self.scenario).duration_s
 
+    def nodes(self) -> list:
+        """The graph's nodes (the harness's collector included), as the handshake names them."""
+        out = ['command_generator', 'controller', 'servovalve_plant']
+        if self.health:
+            out.append('health_monitor')
+        if self.record:
+            out.append('recorder')
+        return out + [COLLECTOR]
+
+    def all_events(self) -> list:
+        """The scenario's events, then ``events``: ``[(t_s, node, {parameter: value})]``."""
+        from eha_ros.physics import get_scenario
+        return list(getattr(get_scenario(self.scenario), 'events', ())) + list(self.events)
+
     def node_parameters(self) -> dict:
-        """``node -> {parameter: value}``."""
+        """``node -> {parameter: value}``.
+
+        Raises
+        ------
+        GraphConfigError
+            For an unknown node, parameter or event target (see the class docstring).
+        """
+        from eha_ros.physics import get_scenario
+        from eha_ros.physics.events import format_event, Event
         sim = self.mode == 'lockstep'
         common = {'mode': self.mode, 'rate_hz': float(self.rate_hz)}
-        from eha_ros.physics import get_scenario
         sc = get_scenario(self.scenario)
         test = ({'valve_test': True,
                  'valve_test_flows_m3_s': [float(q) for q in sc.valve_test_flows_m3_s]}
                 if sc.valve_test else {})
         if sc.preflight_check:
             test['preflight_check'] = True
-        # state readers: controller, collector, health monitor, recorders; /clock readers: the
-        # command generator (its own subscription and its sim-time one), the controller's and
-        # the health monitor's sim time, recorders
-        readers = 2 + int(self.health) + self.recorders + int(bool(self.record))
+        events = {}
+        for item in self.all_events():
+            try:
+                t_s, node, changes = item
+            except (TypeError, ValueError):
+                raise GraphConfigError(f'event {item!r}: expected (t_s, node, {{parameter: '
+                                       'value}})') from None
+            if node not in EVENT_NODES:
+                raise GraphConfigError(f'event at {t_s} s: node {node!r} takes no events '
+                                       f'(nodes with events: {", ".join(EVENT_NODES)})')
+            events.setdefault(node, []).append(format_event(Event(t_s, changes)))
         out = {
             'command_generator': dict(common, scenario=self.scenario, use_sim_time=sim),
             'controller': dict(common, params_file=self.params_file, use_sim_time=sim),
             'servovalve_plant': dict(common, model=self.model, dt_s=float(self.dt_s),
                                      seed=int(self.seed), params_file=self.params_file,
                                      duration_s=self.resolved_duration(),
-                                     start_subscribers=readers,
-                                     start_clock_subscribers=readers + 1,
+                                     handshake_nodes=self.nodes(),
+                                     handshake_timeout_s=float(self.handshake_timeout_s),
                                      **dict(test, **self.plant)),
         }
+        for node, texts in events.items():
+            out[node]['events'] = texts
+        if self.rt:
+            from eha_ros.realtime import RT_DEFAULTS
+            for node in TICKING_NODES:
+                out[node].update(thread_priority=int(RT_DEFAULTS.thread_priority),
+                                 cpu_affinity=[int(c) for c in RT_DEFAULTS.cpu_affinity]
+                                 or [-1], lock_memory=bool(RT_DEFAULTS.lock_memory))
         if self.health:
             out['health_monitor'] = dict(params_file=self.params_file, use_sim_time=sim,
                                          **self.health_params)
+        elif self.health_params:
+            raise GraphConfigError('health_params given without health=True (no health '
+                                   'monitor runs)')
         if self.record:
             out['recorder'] = dict(output=str(Path(self.record).resolve()))
         for node, values in self.node_params.items():
-            if node in out:
-                out[node].update(values)
+            if node not in out:
+                known = ', '.join(out)
+                raise GraphConfigError(f'node_params: no node {node!r} in this graph '
+                                       f'(nodes: {known})')
+            out[node].update(values)
+        _check_declared(out)
         return out
+
+
+def declared_parameters() -> dict:
+    """Every node's declared parameter names, ``{node: set}``, from the installed
+    ``config/graph.yaml`` (which a test keeps equal to what the nodes declare)."""
+    import yaml
+
+    from eha_ros.physics.params import config_dir
+    data = yaml.safe_load((config_dir() / 'graph.yaml').read_text(encoding='utf-8'))
+    return {str(node).strip('/'): set(section['ros__parameters']) | {'use_sim_time'}
+            for node, section in data.items()}
+
+
+def _check_declared(params: dict) -> None:
+    from eha_ros.nodes.common import undeclared_message
+    declared = declared_parameters()
+    for node, values in params.items():
+        for name in values:
+            if name not in declared.get(node, ()):
+                raise GraphConfigError(undeclared_message(node, name, declared.get(node, ())))
 
 
 @dataclasses.dataclass
 class GraphResult:
-    """Arrays of what the collector received, in arrival order (``arrival_s``: monotonic
-    receipt time of states and current commands); ``health`` is a list of HealthStatus
-    messages; ``wall_s`` from start-up to the last state.  In lockstep, ticks the plant
+    """Arrays of what the collector received, in arrival order (``arrival_s``: the
+    middleware's receipt time of states and current commands, on the monotonic clock); ``health`` is a list of HealthStatus
+    messages; ``events``: every parameter change that took effect (``/eha/events``, as
+    dicts).  ``wall_s`` runs from the graph's synchronised start to the last state;
+    ``discovery_s`` from the nodes' launch to that start.  In lockstep, ticks the plant
     re-sent (``resent_ticks`` of them) appear once.  ``interrupted``: the run was stopped
     (``stop``) before the plant reached its duration; ``diagnostics``: the last
     ``DiagnosticStatus`` of each name seen on ``/diagnostics`` (``name -> {'level', 'message',
-    'values'}``), e.g. each node's timing."""
+    'values'}``), e.g. each node's timing.
+
+    What arrived and what did not: ``messages`` (per topic, re-sent ticks included), ``lost``
+    (per topic, gaps in the publishers' sequence numbers), ``missed_at_start`` (per topic,
+    published before the collector's subscription matched: the handshake makes these 0), and
+    ``missing`` (lockstep: the ticks, from 0 to the last state, without a state, a position
+    command or a current command; realtime: the ticks between the first and the last state
+    without a state). :attr:`complete` is true when all of these are empty or zero."""
 
     state: dict
     command: dict
@@ -135,11 +239,35 @@ class GraphResult:
     resent_ticks: int = 0
     interrupted: bool = False
     diagnostics: dict = dataclasses.field(default_factory=dict)
+    events: list = dataclasses.field(default_factory=list)
+    discovery_s: float = 0.0
+    messages: dict = dataclasses.field(default_factory=dict)
+    lost: dict = dataclasses.field(default_factory=dict)
+    missed_at_start: dict = dataclasses.field(default_factory=dict)
+    missing: dict = dataclasses.field(default_factory=dict)
 
     @property
     def sim_s(self) -> float:
         t = self.state['sim_time_s']
         return float(t[-1]) if t.size else 0.0
+
+    @property
+    def complete(self) -> bool:
+        """Nothing lost, missed at the start or missing."""
+        return not (any(self.lost.values()) or any(self.missed_at_start.values())
+                    or any(len(v) for v in self.missing.values()))
+
+    def loss_report(self) -> str:
+        """One line: what did not arrive (empty when :attr:`complete`)."""
+        parts = []
+        for what, ticks in self.missing.items():
+            if len(ticks):
+                parts.append(f'{len(ticks)} ticks without {what} (first: tick {ticks[0]})')
+        for name, counts in (('lost', self.lost), ('missed at the start', self.missed_at_start)):
+            for topic, n in counts.items():
+                if n:
+                    parts.append(f'{topic}: {n} {name}')
+        return '; '.join(parts)
 
 
 def _ros_arg(value) -> str:
@@ -149,7 +277,7 @@ def _ros_arg(value) -> str:
         return value if value else "''"
     if isinstance(value, (list, tuple)):
         if value and all(isinstance(v, str) for v in value):
-            return '[' + ', '.join(value) + ']'
+            return '[' + ', '.join(_quote(v) for v in value) + ']'
         if value and all(isinstance(v, bool) for v in value):
             return '[' + ', '.join(_ros_arg(v) for v in value) + ']'
         if value and all(isinstance(v, int) for v in value):
@@ -158,59 +286,125 @@ def _ros_arg(value) -> str:
     return repr(value)
 
 
+def _quote(text: str) -> str:
+    """A string array entry for ``-p name:=[...]`` (YAML flow sequence): quoted, so that
+    ``:``, ``,`` and ``=`` inside it stay text."""
+    return "'" + text.replace("'", "''") + "'"
+
+
 class _Collector:
-    def __init__(self, context, qos):
+    """The harness's node: subscribes to every graph topic, counts what arrives and what the
+    publishers' sequence numbers say was lost, and takes part in the start-up handshake.
+
+    The data subscriptions belong to a second node that no executor spins: :meth:`poll` takes
+    their messages with their sequence numbers (rclpy's ``EventsExecutor`` cannot hand a
+    callback the message info), which also costs less than an executor pass per message. Each
+    keeps ``QOS_DEPTH`` samples, a second at 1 kHz, so polling every few milliseconds loses
+    nothing."""
+
+    #: Poll at least this often (s).
+    POLL_S = 0.005
+
+    def __init__(self, context):
+        from rclpy.event_handler import SubscriptionEventCallbacks
         from rclpy.node import Node
 
-        from eha_ros.msg import ActuatorCommand, ActuatorState, HealthStatus, ServovalveCommand
-        from eha_ros.graph import (TOPIC_COMMAND, TOPIC_DIAGNOSTICS, TOPIC_HEALTH,
-                                   TOPIC_SERVOVALVE, TOPIC_STATE)
-        from eha_ros.nodes.common import subscribe
-        self.node = Node('eha_harness_collector', context=context,
-                         start_parameter_services=False)
+        from diagnostic_msgs.msg import DiagnosticArray
+        from eha_ros.graph import (QOS_DEPTH, TOPIC_COMMAND, TOPIC_DIAGNOSTICS, TOPIC_EVENTS,
+                                   TOPIC_HEALTH, TOPIC_SERVOVALVE, TOPIC_STATE, graph_qos,
+                                   topic_qos)
+        from eha_ros.msg import (ActuatorCommand, ActuatorState, GraphEvent, HealthStatus,
+                                 ServovalveCommand)
+        from eha_ros.nodes.handshake import Handshake
+        from eha_ros.recording.definitions import SequenceGapCounter
+        self.node = Node(COLLECTOR, context=context, start_parameter_services=False)
+        self.data_node = Node(COLLECTOR + '_data', context=context,
+                              start_parameter_services=False)
         self.states, self.commands, self.currents, self.health = [], [], [], []
         self.state_arrival, self.current_arrival = [], []
+        self.events, self.diagnostics = [], {}
+        self.counters = {}
+        self.handshake = Handshake(self.node)
+        self._subs = []
+        self._last_poll = 0.0
 
-        def on_state(msg):
-            self.state_arrival.append(time.monotonic())
+        def on_state(msg, now):
+            self.state_arrival.append(now)
             self.states.append(msg)
 
-        def on_current(msg):
-            self.current_arrival.append(time.monotonic())
+        def on_current(msg, now):
+            self.current_arrival.append(now)
             self.currents.append(msg)
-        subscribe(self.node, ActuatorState, TOPIC_STATE, on_state)
-        subscribe(self.node, ActuatorCommand, TOPIC_COMMAND, self.commands.append)
-        subscribe(self.node, ServovalveCommand, TOPIC_SERVOVALVE, on_current)
-        subscribe(self.node, HealthStatus, TOPIC_HEALTH, self.health.append)
-        self.diagnostics = {}
 
-        def on_diagnostics(msg):
+        def on_diagnostics(msg, now):
             for st in msg.status:
                 self.diagnostics[st.name] = {
                     'level': int.from_bytes(st.level, 'little') if isinstance(st.level, bytes)
                     else int(st.level), 'message': st.message,
                     'values': {kv.key: kv.value for kv in st.values}}
-        from diagnostic_msgs.msg import DiagnosticArray
-        subscribe(self.node, DiagnosticArray, TOPIC_DIAGNOSTICS, on_diagnostics)
 
-    def set_parameters(self, executor, target: str, values: dict, timeout_s: float = 10.0):
-        """Set parameters of node ``target`` through its parameter service."""
-        from rclpy.parameter import Parameter
-        from rclpy.parameter_client import AsyncParameterClient
-        client = AsyncParameterClient(self.node, target)
-        if not client.wait_for_services(timeout_sec=timeout_s):
-            raise GraphError(f'node {target} offers no parameter service')
-        future = client.set_parameters([Parameter(k, value=v) for k, v in values.items()])
-        end = time.monotonic() + timeout_s
-        while not future.done() and time.monotonic() < end:
-            executor.spin_once(timeout_sec=0.01)
-        if not future.done():
-            raise GraphError(f'setting {sorted(values)} on {target} timed out')
-        for result in future.result().results:
-            if not result.successful:
-                raise GraphError(f'{target} refused {sorted(values)}: {result.reason}')
+        qos = graph_qos(QOS_DEPTH)
+        for cls, topic, callback in (
+                (ActuatorState, TOPIC_STATE, on_state),
+                (ActuatorCommand, TOPIC_COMMAND, lambda m, _: self.commands.append(m)),
+                (ServovalveCommand, TOPIC_SERVOVALVE, on_current),
+                (HealthStatus, TOPIC_HEALTH, lambda m, _: self.health.append(m)),
+                (DiagnosticArray, TOPIC_DIAGNOSTICS, on_diagnostics)):
+            sub = self.data_node.create_subscription(
+                cls, topic, lambda m: None, qos,
+                event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False))
+            self.counters[topic] = SequenceGapCounter()
+            self._subs.append((sub, cls, self.counters[topic], callback))
+            self.handshake.watch(sub, topic)
+        self.node.create_subscription(GraphEvent, TOPIC_EVENTS, self._on_event,
+                                      topic_qos(TOPIC_EVENTS))
 
-    def result(self, config, wall):
+    def poll(self, force: bool = False) -> None:
+        """Take every message waiting on the data subscriptions (at most every ``POLL_S``
+        unless ``force``)."""
+        now = time.monotonic()
+        if not force and now - self._last_poll < self.POLL_S:
+            return
+        self._last_poll = now
+        # receipt times: the middleware's (system clock), on the monotonic clock
+        offset_ns = time.time_ns() - time.monotonic_ns()
+        for sub, cls, counter, callback in self._subs:
+            handle = sub.handle
+            while True:
+                with handle:
+                    taken = handle.take_message(cls, False)
+                if taken is None:
+                    break
+                msg, info = taken
+                gid = info.get('publisher_gid')
+                counter.add(info.get('publication_sequence_number'),
+                            bytes(gid['data']) if gid else None)
+                received = info.get('received_timestamp')
+                callback(msg, (received - offset_ns) * 1e-9 if received else now)
+
+    def destroy(self) -> None:
+        self.data_node.destroy_node()
+        self.node.destroy_node()
+
+    def _on_event(self, msg):
+        self.events.append({
+            'stamp_ns': msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec,
+            'tick_index': int(msg.tick_index), 'node': msg.node, 'source': msg.source,
+            'scheduled_time_s': float(msg.scheduled_time_s),
+            'changes': dict(zip(msg.parameter_names, (float(v) for v in msg.parameter_values)))})
+
+    def final_answers_in(self, config) -> bool:
+        """Lockstep: the command and the current command of the last state's tick arrived."""
+        if not self.states:
+            return True
+        last = self.states[-1].header.stamp
+        key = (last.sec, last.nanosec)
+        return (any((m.header.stamp.sec, m.header.stamp.nanosec) == key
+                    for m in self.currents[-3:])
+                and any((m.header.stamp.sec, m.header.stamp.nanosec) == key
+                        for m in self.commands[-3:]))
+
+    def result(self, config, wall, discovery_s):
         def stamps(msgs):
             return np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
                              for m in msgs], dtype=np.int64)
@@ -228,9 +422,10 @@ class _Collector:
                     keep_m.append(m)
                     keep_a.append(a)
             return keep_m, keep_a
-        self.resent = len(self.states)
+        messages = {t: c.received for t, c in self.counters.items()}
+        resent = len(self.states)
         self.states, self.state_arrival = first_per_stamp(self.states, self.state_arrival)
-        self.resent -= len(self.states)
+        resent -= len(self.states)
         self.currents, self.current_arrival = first_per_stamp(self.currents,
                                                               self.current_arrival)
         self.commands, _ = first_per_stamp(self.commands, [None] * len(self.commands))
@@ -249,27 +444,61 @@ class _Collector:
         servo = {'stamp_ns': stamps(self.currents),
                  'current_command_a': np.array([m.current_command_a for m in self.currents]),
                  'arrival_s': np.array(self.current_arrival)}
-        return GraphResult(state, command, servo, list(self.health), wall, config,
-                           self.resent, diagnostics=dict(self.diagnostics))
+        missing = _missing_ticks(config, state['stamp_ns'], command['stamp_ns'],
+                                 servo['stamp_ns'])
+        return GraphResult(state, command, servo, list(self.health), wall, config, resent,
+                           diagnostics=dict(self.diagnostics), events=list(self.events),
+                           discovery_s=discovery_s, messages=messages,
+                           lost={t: c.lost for t, c in self.counters.items()},
+                           missed_at_start={t: c.missed_at_start
+                                            for t, c in self.counters.items()},
+                           missing=missing)
+
+
+def _missing_ticks(config, state_ns, command_ns, servo_ns) -> dict:
+    """Ticks without a state (both modes: between the first and the last state; lockstep:
+    from tick 0) and, in lockstep, without a position or a current command."""
+    period = round(1e9 / config.rate_hz)
+    if not state_ns.size:
+        return {}
+    have = np.unique(state_ns // period)
+    first = 0 if config.mode == 'lockstep' else int(have[0])
+    expected = np.arange(first, int(have[-1]) + 1)
+    out = {'state': np.setdiff1d(expected, have).tolist()}
+    if config.mode == 'lockstep':
+        out['command'] = np.setdiff1d(expected, np.unique(command_ns // period)).tolist()
+        out['current command'] = np.setdiff1d(expected, np.unique(servo_ns // period)).tolist()
+    return out
 
 
 def run_graph(config: GraphConfig | None = None, processes: bool = True, env: dict | None = None,
               timeout_s: float = 300.0, log_dir: str | None = None, stop=None,
-              on_start=None) -> GraphResult:
+              on_start=None, delays: dict | None = None) -> GraphResult:
     """Run ``config`` until the plant has simulated its duration; see the module docstring.
 
     ``env`` (e.g. from :func:`eha_ros.isolation.ros_environment`) sets ``ROS_DOMAIN_ID`` and
     ``ROS_LOG_DIR``; default: the current environment.  ``stop``: a callable checked every
     50 ms; when it returns true the run ends early (``GraphResult.interrupted``) and every node
     is stopped as after a complete run.  ``on_start(pids)``: called once the nodes are started,
-    with ``{name: pid}`` of the node processes.  Raises :class:`GraphError` when a node exits
-    early or the run stalls for ``timeout_s``.
+    with ``{name: pid}`` of the node processes.  ``delays``: ``{node: seconds}`` to launch a
+    node (or the collector, :data:`COLLECTOR`) that long after the others, e.g. to test late
+    discovery.
+
+    Raises
+    ------
+    GraphConfigError
+        The configuration names an unknown node, parameter or event target (nothing starts).
+    GraphError
+        A node exits early, the start-up handshake does not complete, or the run stalls for
+        ``timeout_s``.
+    GraphDataLoss
+        A lockstep run that is not :attr:`GraphResult.complete` (the result is attached).
     """
     import rclpy
     from rclpy.signals import SignalHandlerOptions
 
     from eha_ros.graph import STATUS_DIVERGED
-    from eha_ros.nodes.common import QOS, make_executor
+    from eha_ros.nodes.common import make_executor
 
     config = config or GraphConfig()
     env = dict(os.environ if env is None else env)
@@ -277,6 +506,10 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
     params = config.node_parameters()
     if config.record and Path(config.record).exists():
         raise GraphError(f'{config.record} exists: refusing to overwrite it')
+    delays = dict(delays or {})
+    unknown = set(delays) - set(params) - {COLLECTOR}
+    if unknown:
+        raise GraphConfigError(f'delays: no node {sorted(unknown)[0]!r} in this graph')
     domain = int(env.get('ROS_DOMAIN_ID', '0'))
     log_dir = Path(log_dir or tempfile.mkdtemp(prefix='eha_graph_'))
     saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_LOG_DIR')}
@@ -291,87 +524,82 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
         rclpy.init(context=context, domain_id=domain,
                    signal_handler_options=SignalHandlerOptions.NO)
         executor = make_executor(context)
-        collector = _Collector(context, QOS)
-        executor.add_node(collector.node)
         t0 = time.monotonic()
         bindir = Path(sys.executable).parent
-        if 'recorder' in params:  # a process of its own in either mode
-            params = dict(params)
-            p = params.pop('recorder')
-            cmd = [str(bindir / 'recorder'), '--ros-args'] + [
-                a for k, v in p.items() for a in ('-p', f'{k}:={_ros_arg(v)}')]
-            out = open(log_dir / 'recorder.log', 'wb')
-            procs['recorder'] = (subprocess.Popen(cmd, env=env, stdout=out,
-                                                  stderr=subprocess.STDOUT, cwd=log_dir), out)
-        if processes:
-            for name, p in params.items():
-                cmd = [str(bindir / name), '--ros-args']
-                for k, v in p.items():
-                    cmd += ['-p', f'{k}:={_ros_arg(v)}']
+        pending = sorted(((delays.get(name, 0.0), name) for name in list(params) + [COLLECTOR]),
+                         key=lambda x: x[0])
+
+        def launch(name):
+            nonlocal collector
+            if name == COLLECTOR:
+                collector = _Collector(context)
+                executor.add_node(collector.node)
+            elif processes or name == 'recorder':  # the recorder: a process in either mode
+                cmd = [str(bindir / name), '--ros-args'] + [
+                    a for k, v in params[name].items() for a in ('-p', f'{k}:={_ros_arg(v)}')]
                 out = open(log_dir / f'{name}.log', 'wb')
                 procs[name] = (subprocess.Popen(cmd, env=env, stdout=out,
                                                 stderr=subprocess.STDOUT, cwd=log_dir), out)
-        else:
-            from rclpy.parameter import Parameter
-
-            from eha_ros.nodes.command_generator import CommandGenerator
-            from eha_ros.nodes.controller import Controller
-            from eha_ros.nodes.health_monitor import HealthMonitor
-            from eha_ros.nodes.servovalve_plant import ServovalvePlant
-            classes = {'command_generator': CommandGenerator, 'controller': Controller,
-                       'servovalve_plant': ServovalvePlant, 'health_monitor': HealthMonitor}
-            for name, p in params.items():
-                overrides = [Parameter(k, value=v) for k, v in p.items()]
-                node = classes[name](context=context, parameter_overrides=overrides)
+            else:
+                node = _node_class(name)(context=context, parameter_overrides=[
+                    Parameter(k, value=v) for k, v in params[name].items()])
+                from eha_ros.nodes.common import refuse_undeclared
+                refuse_undeclared(node)
                 nodes.append(node)
                 executor.add_node(node)
+
+        from rclpy.parameter import Parameter
+        while pending and pending[0][0] <= 0:
+            launch(pending.pop(0)[1])
         if on_start is not None:
             on_start({name: proc.pid for name, (proc, _) in procs.items()})
         last_progress, last_count = time.monotonic(), 0
-        events = sorted(config.events, key=lambda e: e[0])
+        start_deadline = t0 + config.handshake_timeout_s + _START_MARGIN_S
         while True:
-            executor.spin_once(timeout_sec=0.05)
+            executor.spin_once(timeout_sec=_Collector.POLL_S)
+            if collector is not None:
+                collector.poll()
+            now = time.monotonic()
+            while pending and now - t0 >= pending[0][0]:
+                launch(pending.pop(0)[1])
             if stop is not None and stop():
                 interrupted = True
                 break
-            states = collector.states
-            while events and states and states[-1].sim_time_s >= events[0][0]:
-                _, target, values = events.pop(0)
-                collector.set_parameters(executor, target, values)
+            states = collector.states if collector is not None else []
             if states and (states[-1].header.stamp.sec * 1_000_000_000
                            + states[-1].header.stamp.nanosec) >= duration_ns:
                 break
             if states and states[-1].status == STATUS_DIVERGED:
                 break  # diverged: the plant has stopped
+            fatal = next((n.fatal for n in nodes if getattr(n, 'fatal', None)), None)
+            if fatal:
+                raise GraphError(fatal)
             exited = [name for name, (proc, _) in procs.items() if proc.poll() is not None]
             if exited and stop is not None and stop():
                 interrupted = True  # the Ctrl-C reached a node before this loop saw it
                 break
             if exited:
                 name, proc = exited[0], procs[exited[0]][0]
-                raise GraphError(f'node {name} exited with status {proc.returncode} '
-                                 f'before the run completed (log: {log_dir / name}.log): '
-                                 + _tail(log_dir / f'{name}.log'))
-            if len(states) != last_count:
-                last_count, last_progress = len(states), time.monotonic()
-            elif time.monotonic() - last_progress > timeout_s:
+                error = GraphConfigError if proc.returncode == 2 else GraphError  # 2: refused
+                raise error(_exit_message(name, proc.returncode, log_dir))
+            started = collector is not None and collector.handshake.started
+            if not started:
+                last_progress = now
+                if now > start_deadline:
+                    problem = (evaluate_reports(collector, config) if collector is not None
+                               else 'the collector was never created')
+                    raise GraphError(f'start-up handshake incomplete after '
+                                     f'{now - t0:.0f} s: {problem} (logs in {log_dir})')
+            elif len(states) != last_count:
+                last_count, last_progress = len(states), now
+            elif now - last_progress > timeout_s:
                 raise GraphError(f'no plant state for {timeout_s:g} s (after {last_count} '
                                  f'states): the graph stalled (logs in {log_dir})')
-        # let the last tick's messages (health, commands) arrive; the health monitor
-        # estimates on a worker thread: wait until it is idle and its messages are in
-        end = time.monotonic() + 0.2
-        cap = time.monotonic() + 10.0
-        n_health = -1
-        while time.monotonic() < cap:
-            executor.spin_once(timeout_sec=0.02)
-            if time.monotonic() < end:
-                continue
-            busy = any(getattr(n, '_pending', 0) for n in nodes)
-            if not config.health or (not busy and len(collector.health) == n_health):
-                break
-            n_health = len(collector.health)
-            end = time.monotonic() + 0.3
-        result = collector.result(config, time.monotonic() - t0)
+        _drain(executor, collector, config, nodes)
+        start_mono = (collector.handshake.start_monotonic_ns() * 1e-9
+                      if collector.handshake.started else t0)
+        last = collector.state_arrival[-1] if collector.state_arrival else time.monotonic()
+        result = collector.result(config, max(0.0, last - start_mono), max(0.0, start_mono - t0))
         result.interrupted = interrupted
     finally:
         if interrupted:  # a terminal's Ctrl-C reached the nodes too: let them stop on their own
@@ -400,7 +628,7 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
                 close()
             node.destroy_node()
         if collector is not None:
-            collector.node.destroy_node()
+            collector.destroy()
         if executor is not None:
             executor.shutdown()
         rclpy.try_shutdown(context=context)
@@ -411,7 +639,62 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
                 os.environ[k] = v
     if failure is not None:  # reached only when the run itself succeeded
         raise GraphError(failure)
+    if config.mode == 'lockstep' and not result.interrupted and not result.complete:
+        raise GraphDataLoss(f'lockstep run incomplete: {result.loss_report()}', result)
     return result
+
+
+def _node_class(name: str):
+    from eha_ros.nodes.command_generator import CommandGenerator
+    from eha_ros.nodes.controller import Controller
+    from eha_ros.nodes.health_monitor import HealthMonitor
+    from eha_ros.nodes.servovalve_plant import ServovalvePlant
+    return {'command_generator': CommandGenerator, 'controller': Controller,
+            'servovalve_plant': ServovalvePlant, 'health_monitor': HealthMonitor}[name]
+
+
+def evaluate_reports(collector, config) -> str:
+    """What the handshake still waits for, from the reports the collector has seen."""
+    from eha_ros.nodes.handshake import evaluate
+    reports = dict(collector.handshake.reports)
+    reports[COLLECTOR] = collector.handshake.counts()
+    return evaluate(reports, config.nodes()) or 'every endpoint matched, but no start arrived'
+
+
+def _exit_message(name: str, code: int, log_dir: Path) -> str:
+    """One line for a node process that ended early: its own error line where it printed
+    one (a refused parameter, a handshake that timed out), else its log's tail."""
+    log = log_dir / f'{name}.log'
+    try:
+        lines = log.read_text(errors='replace').strip().splitlines()
+    except OSError:
+        lines = []
+    own = [line for line in lines if line.startswith(f'{name}: error:')]
+    if own:
+        return own[-1]
+    return (f'node {name} exited with status {code} before the run completed (log: {log}): '
+            + ' | '.join(lines[-3:]))
+
+
+def _drain(executor, collector, config, nodes) -> None:
+    """Let the last tick's messages arrive: in lockstep until its command and current command
+    are in; with the health monitor until it is idle (it estimates on a worker thread) and
+    its messages are in. At most 10 s."""
+    end = time.monotonic() + 0.2
+    cap = time.monotonic() + 10.0
+    n_health = -1
+    while time.monotonic() < cap:
+        executor.spin_once(timeout_sec=0.02)
+        collector.poll(force=True)
+        if time.monotonic() < end:
+            continue
+        if config.mode == 'lockstep' and not collector.final_answers_in(config):
+            continue
+        busy = any(getattr(n, '_pending', 0) for n in nodes)
+        if not config.health or (not busy and len(collector.health) == n_health):
+            break
+        n_health = len(collector.health)
+        end = time.monotonic() + 0.3
 
 
 def _tail(path: Path, n: int = 3) -> str:

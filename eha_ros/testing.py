@@ -26,7 +26,8 @@ from eha_ros.isolation import (allocate_domain_id, DOMAIN_IDS, DomainIdLease,  #
                                RMW_IMPLEMENTATION, ros_environment)
 
 #: The package's message types, in ``eha_ros.msg``.
-MESSAGE_TYPES = ('ActuatorCommand', 'ServovalveCommand', 'ActuatorState', 'HealthStatus')
+MESSAGE_TYPES = ('ActuatorCommand', 'ServovalveCommand', 'ActuatorState', 'HealthStatus',
+                 'GraphEvent')
 
 #: Topic prefix used by the ``pub``/``sub`` commands; one topic per message type.
 TOPIC_PREFIX = '/eha_ros_test'

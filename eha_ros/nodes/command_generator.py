@@ -1,6 +1,8 @@
 """``command_generator``: publishes the jack position command (``ActuatorCommand``).
 
-Realtime mode: a wall-clock timer at ``rate_hz``, time counted from the node's start.
+Realtime mode: a wall-clock timer at ``rate_hz``, time counted from the graph's common start
+(the start-up handshake, :mod:`eha_ros.nodes.handshake`): the command of time t is published at
+the start plus t, as the plant's state of time t.
 Lockstep mode: one command per ``/clock`` tick published by the plant, stamped with that tick
 and evaluated at exactly its time.
 
@@ -20,8 +22,12 @@ from eha_ros.msg import ActuatorCommand
 from eha_ros.physics import ParameterError, Scenario, load_scenarios
 from eha_ros.physics.commands import WAVEFORMS
 
-from .common import (MODES, TOPIC_CLOCK, TOPIC_COMMAND, TickTiming, advertise, declare,
-                     ns_to_stamp, run_node, stamp_to_ns, subscribe, validator)
+from eha_ros.graph import TOPIC_DIAGNOSTICS
+
+from .common import (advertise, apply_realtime_settings, at_start, begin_timing, declare,
+                     declare_realtime, MODES, ns_to_stamp, run_node, stamp_to_ns, subscribe,
+                     TickTiming, TOPIC_CLOCK, TOPIC_COMMAND, validator)
+from .handshake import Handshake
 
 _WAVE_PARAMS = ('amplitude_m', 'frequency_rad_s', 'start_s', 'ramp_time_s', 'f0_hz', 'f1_hz',
                 'sweep_time_s')
@@ -31,6 +37,7 @@ class CommandGenerator(Node):
     """Publishes ``ActuatorCommand`` at the fixed rate or on every lockstep tick."""
 
     def __init__(self, **kwargs):
+        init_ns = time.monotonic_ns()
         super().__init__('command_generator', **kwargs)
         self._scenarios = load_scenarios()
         declare(self, 'scenario', 'step_0p1', 'named scenario of config/scenarios.yaml; empty: '
@@ -45,6 +52,7 @@ class CommandGenerator(Node):
             declare(self, name, 0.0, text)
         declare(self, 'rate_hz', 1000.0, 'publication rate in realtime mode [Hz]', 1.0, 1e5)
         declare(self, 'mode', 'realtime', 'timing mode', choices=MODES)
+        realtime = declare_realtime(self)
         self.scenario = self._build(self._values())
         self._check_mode(self.get_parameter('mode').value)
         self.add_on_set_parameters_callback(validator(self._on_set))
@@ -53,11 +61,27 @@ class CommandGenerator(Node):
         self.published = 0
         self.timing = TickTiming(self, self.get_parameter('rate_hz').value,
                                  self.mode == 'realtime')
+        self.handshake = Handshake(self, on_start=self._on_start)
+        self.handshake.watch(self.pub, TOPIC_COMMAND)
+        self.handshake.watch(self.timing.pub, TOPIC_DIAGNOSTICS)
         if self.mode == 'lockstep':
-            subscribe(self, Clock, TOPIC_CLOCK, self._on_clock)
-        else:
-            self._t0_ns = self.get_clock().now().nanoseconds
-            self.create_timer(1.0 / self.get_parameter('rate_hz').value, self._on_timer)
+            clock_sub = subscribe(self, Clock, TOPIC_CLOCK, self._on_clock)
+            self.handshake.watch(clock_sub, TOPIC_CLOCK)
+        self._t0_ns = None
+        self._warm_up_s = (time.monotonic_ns() - init_ns) * 1e-9
+        apply_realtime_settings(self, realtime)
+
+    def _on_start(self, start_ns: int, mode: str) -> None:
+        """The graph starts: realtime commands are timed from the common start."""
+        start_mono = self.handshake.start_monotonic_ns()
+        begin_timing(self, self.timing, start_mono, self._warm_up_s)
+        if self.mode == 'realtime':
+            self._t0_ns = start_ns
+            at_start(self, start_mono, self._begin_realtime)
+
+    def _begin_realtime(self) -> None:
+        self.create_timer(1.0 / self.get_parameter('rate_hz').value, self._on_timer)
+        self._on_timer()
 
     def _values(self, changes=None) -> dict:
         names = ('scenario', 'waveform') + _WAVE_PARAMS

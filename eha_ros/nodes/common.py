@@ -23,7 +23,9 @@ from eha_ros.graph import (MODES, TIMING_SUFFIX, TOPIC_CLOCK, TOPIC_COMMAND, TOP
 
 __all__ = ['TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOPIC_HEALTH',
            'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'QOS', 'MODES', 'declare', 'declare_physics',
-           'run_node', 'stamp_to_ns', 'ns_to_stamp', 'TickTiming', 'TIMING_SUFFIX']
+           'run_node', 'stamp_to_ns', 'ns_to_stamp', 'TickTiming', 'TIMING_SUFFIX',
+           'refuse_undeclared', 'undeclared_message', 'declare_realtime',
+           'apply_realtime_settings', 'begin_timing', 'at_start']
 
 #: Every graph topic (names and QoS from :mod:`eha_ros.graph`): reliable, last 1000
 #: kept, volatile: a reader outside the loop (recorder, health monitor) may lag 1 s at 1 kHz.
@@ -56,7 +58,7 @@ def ns_to_stamp(stamp, t_ns: int):
 
 
 def declare(node: Node, name: str, default, description: str, lo=None, hi=None,
-            choices: Iterable[str] = (), read_only: bool = False):
+            choices: Iterable[str] = (), read_only: bool = False, ints: bool = False):
     """Declare a parameter with its description and range (shown by parameter tools)."""
     desc = ParameterDescriptor(description=description, read_only=read_only)
     if choices:
@@ -74,6 +76,12 @@ def declare(node: Node, name: str, default, description: str, lo=None, hi=None,
                                                             to_value=float(hi), step=0.0)]
     elif isinstance(default, str):
         desc.type = ParameterType.PARAMETER_STRING
+    elif isinstance(default, (list, tuple)) and ints:
+        desc.type = ParameterType.PARAMETER_INTEGER_ARRAY
+        default = [int(v) for v in default]
+    elif isinstance(default, (list, tuple)) and default and all(
+            isinstance(v, str) for v in default):
+        desc.type = ParameterType.PARAMETER_STRING_ARRAY
     elif isinstance(default, (list, tuple)) and default and all(
             isinstance(v, float) for v in default):
         desc.type = ParameterType.PARAMETER_DOUBLE_ARRAY
@@ -111,6 +119,12 @@ def validator(check: Callable[[dict], None]):
     return callback
 
 
+#: Period jitter since startup is kept as a histogram of this bin width (ns) and count (the
+#: last bin holds everything beyond), so a long run costs no memory.
+JITTER_BIN_NS = 10_000
+JITTER_BINS = 2000
+
+
 class TickTiming:
     """A node's own timing, published as a ``DiagnosticStatus`` ``'<node>: timing'`` on
     ``/diagnostics`` once per ``window_s`` of wall time, like diagnostic_updater's
@@ -133,6 +147,14 @@ class TickTiming:
       core, also when several nodes share one process); ``Process CPU (core)``: the whole
       process's CPU time per wall second.
 
+    "Since startup" counts from the graph's synchronised start (:meth:`start`, the end of the
+    start-up handshake), not from the node's creation; ``JIT warm-up (s)`` and ``Discovery
+    (s)`` report the time before it. In lockstep there is no wall-clock schedule: the
+    realtime keys (jitter, late, slipped, on time) are left out and ``Simulated s per wall s``
+    and ``Resent ticks since startup`` (the plant) are reported instead. With a garbage
+    collector monitor (``gc``, :class:`eha_ros.realtime.GcPauses`): ``GC collections since
+    startup`` and ``GC pause max (ms)``.
+
     Level (realtime): ERROR when no tick in the window, WARN when the rate is outside the
     tolerance or a tick slipped or ran late in the window, else OK. In lockstep the plant sets
     the pace and there is no wall-clock target: OK, with the rate reported.
@@ -141,7 +163,6 @@ class TickTiming:
     def __init__(self, node: Node, rate_hz: float, realtime: bool, *, window_s: float = 1.0,
                  tolerance: float = 0.1):
         from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.clock import Clock as RosClock, ClockType
 
         self.node = node
         self.name = node.get_name() + TIMING_SUFFIX
@@ -149,17 +170,39 @@ class TickTiming:
         self.period_ns = round(1e9 / rate_hz)
         self.realtime = realtime
         self.tolerance = tolerance
-        self.ticks = self.late = self.slipped = self.overruns = 0
+        self.window_s = window_s
+        self.ticks = self.late = self.slipped = self.overruns = self.resent = 0
         self._due_ns = None  # own schedule (see on_schedule)
         self._w_ticks = self._w_late = self._w_slipped = self._w_busy_ns = 0
         self._intervals = []
         self._last_ns = None
-        self._w_start = time.monotonic_ns()
+        self._w_start = self._start_ns = time.monotonic_ns()
         self._cpu0 = time.process_time_ns()
         self._array = DiagnosticArray
+        self.startup = {}
+        self.gc = None
+        self._jitter_hist = [0] * JITTER_BINS
         self.pub = advertise(node, DiagnosticArray, TOPIC_DIAGNOSTICS)
-        self.timer = node.create_timer(window_s, self.publish,
-                                       clock=RosClock(clock_type=ClockType.STEADY_TIME))
+        self.timer = None
+
+    def start(self, start_ns: int, startup: dict | None = None) -> None:
+        """Begin at the graph's start ``start_ns`` (``time.monotonic_ns``): statistics and
+        reports cover the run from there; ``startup`` (e.g. ``{'JIT warm-up (s)': ..,
+        'Discovery (s)': ..}``) is reported beside them. Ticks fall due on a grid anchored at
+        ``start_ns`` (:meth:`on_schedule`)."""
+        from rclpy.clock import Clock as RosClock, ClockType
+        self.ticks = self.late = self.slipped = self.overruns = self.resent = 0
+        self._w_ticks = self._w_late = self._w_slipped = self._w_busy_ns = 0
+        self._intervals = []
+        self._jitter_hist = [0] * JITTER_BINS
+        self._last_ns = None
+        self._due_ns = start_ns
+        self._w_start = self._start_ns = max(start_ns, time.monotonic_ns())
+        self._cpu0 = time.process_time_ns()
+        self.startup = dict(startup or {})
+        if self.timer is None:
+            self.timer = self.node.create_timer(self.window_s, self.publish,
+                                                clock=RosClock(clock_type=ClockType.STEADY_TIME))
 
     def tick(self, now_ns: int | None = None, late_ns: int | None = None) -> None:
         """One tick run at ``now_ns`` (``time.monotonic_ns``), ``late_ns`` after it fell due
@@ -208,33 +251,64 @@ class TickTiming:
         now_ns = time.monotonic_ns() if now_ns is None else now_ns
         cpu = time.process_time_ns()
         window_s = max(1e-9, (now_ns - self._w_start) * 1e-9)
-        dev = [abs(i - self.period_ns) * 1e-6 for i in self._intervals]
-        dev.sort()
-        total = self.ticks + self.slipped
+        run_s = max(1e-9, (now_ns - self._start_ns) * 1e-9)
         out = {
             'Events in window': self._w_ticks,
             'Events since startup': self.ticks,
             'Duration of window (s)': round(window_s, 6),
             'Actual frequency (Hz)': round(self._w_ticks / window_s, 3),
             'Target frequency (Hz)': self.target_hz,
-            'Minimum acceptable frequency (Hz)': self.target_hz * (1 - self.tolerance),
-            'Maximum acceptable frequency (Hz)': self.target_hz * (1 + self.tolerance),
-            'Period jitter p99 (ms)': round(dev[min(len(dev) - 1, int(0.99 * len(dev)))], 4)
-            if dev else 0.0,
-            'Period jitter max (ms)': round(dev[-1], 4) if dev else 0.0,
-            'Late ticks since startup': self.late,
-            'Slipped ticks since startup': self.slipped,
-            'On time since startup (%)': round(100.0 * (self.ticks - self.late) / total, 3)
-            if total else 100.0,
+        }
+        if self.realtime:
+            dev = [abs(i - self.period_ns) * 1e-6 for i in self._intervals]
+            dev.sort()
+            for i in self._intervals:
+                self._jitter_hist[min(len(self._jitter_hist) - 1,
+                                      abs(i - self.period_ns) // JITTER_BIN_NS)] += 1
+            total = self.ticks + self.slipped
+            out.update({
+                'Minimum acceptable frequency (Hz)': self.target_hz * (1 - self.tolerance),
+                'Maximum acceptable frequency (Hz)': self.target_hz * (1 + self.tolerance),
+                'Period jitter p99 (ms)': round(dev[min(len(dev) - 1, int(0.99 * len(dev)))],
+                                                4) if dev else 0.0,
+                'Period jitter max (ms)': round(dev[-1], 4) if dev else 0.0,
+                'Period jitter p99 since startup (ms)': self._jitter_p99_ms(),
+                'Late ticks since startup': self.late,
+                'Slipped ticks since startup': self.slipped,
+                'On time since startup (%)': round(100.0 * (self.ticks - self.late) / total, 3)
+                if total else 100.0,
+            })
+        else:
+            out['Simulated s per wall s'] = round(self.ticks * self.period_ns * 1e-9 / run_s, 4)
+            if self.resent:
+                out['Resent ticks since startup'] = self.resent
+        out.update({
             'Overruns since startup': self.overruns,
+            'Wall time since startup (s)': round(run_s, 3),
             'Busy (core)': round(self._w_busy_ns * 1e-9 / window_s, 4),
             'Process CPU (core)': round((cpu - self._cpu0) * 1e-9 / window_s, 4),
-        }
+        })
+        if self.gc is not None:
+            g = self.gc.stats()
+            out.update({'GC collections since startup': g['count'],
+                        'GC pause max (ms)': round(g['max_ms'] or 0.0, 4)})
+        out.update(self.startup)
         self._level = self._grade(out, self._w_late, self._w_slipped)
         self._w_ticks = self._w_late = self._w_slipped = self._w_busy_ns = 0
         self._intervals = []
         self._w_start, self._cpu0 = now_ns, cpu
         return out
+
+    def _jitter_p99_ms(self) -> float:
+        n = sum(self._jitter_hist)
+        if not n:
+            return 0.0
+        seen = 0
+        for k, c in enumerate(self._jitter_hist):
+            seen += c
+            if seen >= 0.99 * n:
+                return round((k + 1) * JITTER_BIN_NS * 1e-6, 4)
+        return round(len(self._jitter_hist) * JITTER_BIN_NS * 1e-6, 4)
 
     def _grade(self, v: dict, late: int, slipped: int):
         from diagnostic_msgs.msg import DiagnosticStatus
@@ -265,6 +339,37 @@ class TickTiming:
         self.pub.publish(msg)
 
 
+def begin_timing(node: Node, timing: TickTiming, start_mono_ns: int, warm_up_s: float) -> None:
+    """The graph has started: settle the garbage collector (everything alive after start-up
+    moves to the permanent generation, so no later collection traverses the JIT's and the
+    middleware's objects inside a tick), watch its pauses, and start ``timing`` at
+    ``start_mono_ns`` with the start-up times beside it."""
+    from eha_ros.realtime import GcPauses, settle_gc
+    settle_gc()
+    if timing.gc is None:
+        timing.gc = GcPauses()
+    discovery = max(0.0, (start_mono_ns - node.handshake.created_monotonic_ns) * 1e-9)
+    timing.start(start_mono_ns, {'JIT warm-up (s)': round(warm_up_s, 3),
+                                 'Discovery (s)': round(discovery, 3)})
+
+
+def at_start(node: Node, start_mono_ns: int, callback: Callable[[], None]) -> None:
+    """Call ``callback`` once at ``start_mono_ns`` (``time.monotonic_ns``), or now if that has
+    passed."""
+    from rclpy.clock import Clock as RosClock, ClockType
+    delay_ns = start_mono_ns - time.monotonic_ns()
+    if delay_ns <= 0:
+        callback()
+        return
+    timer = None
+
+    def once():
+        timer.cancel()
+        callback()
+    timer = node.create_timer(delay_ns * 1e-9, once,
+                              clock=RosClock(clock_type=ClockType.STEADY_TIME))
+
+
 #: Executors a node can spin in (environment variable ``EHA_ROS_EXECUTOR``).
 EXECUTORS = ('single', 'events')
 
@@ -286,6 +391,69 @@ def make_executor(context=None):
     return SingleThreadedExecutor(context=context)
 
 
+#: Parameters rclpy itself reads from overrides without a declaration (QoS overrides).
+_RCLPY_PREFIXES = ('qos_overrides.',)
+
+
+def undeclared_message(node_name: str, name: str, declared: Iterable[str]) -> str:
+    """One line refusing parameter ``name`` of ``node_name``: the nearest declared names, or
+    for a physical parameter that is not a node parameter, where it is set instead."""
+    import difflib
+    declared = sorted(declared)
+    text = f'{node_name} has no parameter {name!r}'
+    if name in SPEC_BY_NAME:
+        return (f'{text}: {name} is a physical parameter fixed for a run; set it in the '
+                f'physical parameter file (config/eha_params.yaml form) given as '
+                f'{node_name}.params_file')
+    near = difflib.get_close_matches(name, declared, n=3, cutoff=0.6)
+    return text + (f' (did you mean {", ".join(near)}?)' if near else
+                   f' (it declares {", ".join(declared)})')
+
+
+def refuse_undeclared(node: Node) -> None:
+    """Refuse overrides (``-p``, ``--params-file``, ``parameter_overrides``) of parameters
+    ``node`` does not declare: ROS would ignore them, so a misspelt fault would run the
+    nominal valve. Call it after every declaration.
+
+    Raises
+    ------
+    ParameterError
+        Naming the first such parameter and the nearest declared names.
+    """
+    declared = set(node._parameters)
+    unknown = sorted(n for n in node._parameter_overrides
+                     if n not in declared and not n.startswith(_RCLPY_PREFIXES))
+    if unknown:
+        raise ParameterError(undeclared_message(node.get_name(), unknown[0], declared))
+
+
+def declare_realtime(node: Node):
+    """Declare the real-time settings of a ticking node (``ros2_control_node``'s names) and
+    return them as :class:`eha_ros.realtime.RealtimeSettings`."""
+    from eha_ros.realtime import RealtimeSettings
+    priority = declare(node, 'thread_priority', 0, 'SCHED_FIFO priority of every thread of '
+                       'the process (1-99; 0: normal scheduling)', 0, 99)
+    cpus = declare(node, 'cpu_affinity', [-1], 'CPUs to pin every thread of the process to '
+                   '([-1]: no pinning)', ints=True)
+    lock = declare(node, 'lock_memory', False, 'lock the process memory in RAM (mlockall), '
+                   'so no page fault stalls a tick')
+    cpus = tuple(int(c) for c in cpus if int(c) >= 0)
+    try:
+        return RealtimeSettings(thread_priority=int(priority), cpu_affinity=cpus,
+                                lock_memory=bool(lock))
+    except ValueError as exc:
+        raise ParameterError(str(exc)) from None
+
+
+def apply_realtime_settings(node: Node, settings) -> None:
+    """Apply ``settings`` to the process; each refusal by the OS is one warning saying what to
+    change (the node runs on without it)."""
+    from eha_ros.realtime import apply_realtime
+    if settings.thread_priority or settings.cpu_affinity or settings.lock_memory:
+        for line in apply_realtime(settings):
+            node.get_logger().warning(line)
+
+
 def run_node(factory: Callable[[], Node], args=None) -> int:
     """Init, build the node, spin, shut down cleanly; a bad parameter exits with status 2 and
     one line on stderr."""
@@ -293,10 +461,16 @@ def run_node(factory: Callable[[], Node], args=None) -> int:
     node = None
     try:
         node = factory()
+        refuse_undeclared(node)
         executor = make_executor()
         executor.add_node(node)
         while rclpy.ok():  # spin_once: EventsExecutor.spin() ignores shutdown
             executor.spin_once(timeout_sec=0.1)
+            fatal = getattr(node, 'fatal', None)
+            if fatal:
+                print(f'{getattr(factory, "node_name", "eha_ros")}: error: {fatal}',
+                      file=sys.stderr)
+                return 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ParameterError, ValueError, ParameterException) as exc:

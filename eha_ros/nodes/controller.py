@@ -10,6 +10,10 @@ Lockstep mode: for each plant tick it waits for both the state and the command o
 that tick (matching stamps), then answers with the current for that tick; a repeated tick
 (the plant re-sending after a lost message) gets the same answer again.
 
+``events``: gain changes on the simulation clock (``'T:kp_a_m=value'``), each applied at the
+first tick whose time is at least T, before that tick's control update, and published on
+``/eha/events``; live gain sets are published there too.
+
 The arithmetic is :class:`eha_ros.physics.plant.PositionController`, the same as the
 physics-only closed loop.  Parameters: ``kp_a_m``, ``ki_a_m_s``, ``kd_a_s_m``,
 ``current_limit_a`` (defaults from ``params_file``), ``rate_hz``, ``mode``, ``trigger``,
@@ -18,19 +22,25 @@ physics-only closed loop.  Parameters: ``kp_a_m``, ``ki_a_m_s``, ``kd_a_s_m``,
 
 from __future__ import annotations
 
+import math
 import time
 
 from rclpy.node import Node
 
-from eha_ros.msg import ActuatorCommand, ActuatorState, ServovalveCommand
+from eha_ros.graph import TOPIC_DIAGNOSTICS, TOPIC_EVENTS, topic_qos
+from eha_ros.msg import ActuatorCommand, ActuatorState, GraphEvent, ServovalveCommand
 from eha_ros.physics import ParameterError, load_params
+from eha_ros.physics.events import CONTROLLER_RUNTIME, EventSchedule, parse_event
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import PositionController
 
-from .common import (MODES, TOPIC_COMMAND, TOPIC_SERVOVALVE, TOPIC_STATE, TickTiming, advertise,
-                     declare, declare_physics, run_node, stamp_to_ns, subscribe, validator)
+from .common import (advertise, apply_realtime_settings, at_start, begin_timing, declare,
+                     declare_physics, declare_realtime, MODES, ns_to_stamp, run_node,
+                     stamp_to_ns, subscribe, TickTiming, TOPIC_COMMAND, TOPIC_SERVOVALVE,
+                     TOPIC_STATE, validator)
+from .handshake import Handshake
 
-GAINS = ('kp_a_m', 'ki_a_m_s', 'kd_a_s_m', 'current_limit_a')
+GAINS = CONTROLLER_RUNTIME
 
 
 #: What clocks the realtime controller.
@@ -41,6 +51,7 @@ class Controller(Node):
     """Position controller node."""
 
     def __init__(self, **kwargs):
+        init_ns = time.monotonic_ns()
         super().__init__('controller', **kwargs)
         path = declare(self, 'params_file', '', 'physical parameter YAML (empty: the installed '
                        'config/eha_params.yaml)')
@@ -50,6 +61,10 @@ class Controller(Node):
         declare(self, 'mode', 'realtime', 'timing mode', choices=MODES)
         self.trigger = declare(self, 'trigger', 'state', 'realtime: a control step per plant '
                                'state, or per tick of its own timer', choices=TRIGGERS)
+        events = declare(self, 'events', [''], "gain changes on the simulation clock: "
+                         "'T:name=value[,name=value]' entries, each applied at the first tick "
+                         "whose time is at least T s (empty entries are ignored)")
+        realtime = declare_realtime(self)
         if self.trigger not in TRIGGERS:
             raise ParameterError(f'trigger {self.trigger!r} must be one of {", ".join(TRIGGERS)}')
         self.mode = self.get_parameter('mode').value
@@ -57,12 +72,20 @@ class Controller(Node):
             raise ParameterError(f'mode {self.mode!r} must be one of {", ".join(MODES)}')
         self.period_s = 1.0 / self.get_parameter('rate_hz').value
         self.params = self._params({})
+        self.period_ns = round(self.period_s * 1e9)
+        self.schedule = EventSchedule([parse_event(e) for e in events if e.strip()],
+                                      allowed=GAINS, period_ns=self.period_ns)
+        self.schedule.validate(self.params)
         self.pid = PositionController(self.params, self.period_s)
         PositionController(self.params, self.period_s).update(0.0, 0.0)  # JIT before tick 0
+        self._applying = False
         self.add_on_set_parameters_callback(validator(self._on_set))
+        self.events_pub = self.create_publisher(GraphEvent, TOPIC_EVENTS,
+                                                topic_qos(TOPIC_EVENTS))
+        self._stamp_ns = 0  # the tick being served (its state's stamp)
         self.pub = advertise(self, ServovalveCommand, TOPIC_SERVOVALVE)
-        subscribe(self, ActuatorCommand, TOPIC_COMMAND, self._on_command)
-        subscribe(self, ActuatorState, TOPIC_STATE, self._on_state)
+        command_sub = subscribe(self, ActuatorCommand, TOPIC_COMMAND, self._on_command)
+        state_sub = subscribe(self, ActuatorState, TOPIC_STATE, self._on_state)
         self.command_m = 0.0
         self.measured_m = 0.0
         self._commands = {}  # lockstep: stamp ns -> setpoint, for ticks not yet answered
@@ -70,8 +93,19 @@ class Controller(Node):
         self._answered = (None, 0.0)  # lockstep: last tick answered and its current
         self.published = 0
         self.timing = TickTiming(self, 1.0 / self.period_s, self.mode == 'realtime')
+        self.handshake = Handshake(self, on_start=self._on_start)
+        for entity, topic in ((self.pub, TOPIC_SERVOVALVE), (command_sub, TOPIC_COMMAND),
+                              (state_sub, TOPIC_STATE), (self.timing.pub, TOPIC_DIAGNOSTICS)):
+            self.handshake.watch(entity, topic)
+        self._warm_up_s = (time.monotonic_ns() - init_ns) * 1e-9
+        apply_realtime_settings(self, realtime)
+
+    def _on_start(self, start_ns: int, mode: str) -> None:
+        start_mono = self.handshake.start_monotonic_ns()
+        begin_timing(self, self.timing, start_mono, self._warm_up_s)
         if self.mode == 'realtime' and self.trigger == 'timer':
-            self.create_timer(self.period_s, self._on_own_timer)
+            at_start(self, start_mono,
+                     lambda: self.create_timer(self.period_s, self._on_own_timer))
 
     def _params(self, changes):
         values = {n: self.get_parameter(n).value for n in GAINS}
@@ -79,12 +113,44 @@ class Controller(Node):
         return replace(self.base, **values)
 
     def _on_set(self, changes):
-        if {'mode', 'rate_hz', 'params_file', 'trigger'} & set(changes):
-            raise ParameterError('mode, rate_hz, trigger and params_file cannot change while '
-                                 'running')
-        if set(changes) & set(GAINS):
-            self.params = self._params(changes)
+        frozen = {'mode', 'rate_hz', 'params_file', 'trigger', 'events', 'thread_priority',
+                  'cpu_affinity', 'lock_memory'} & set(changes)
+        if frozen:
+            raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
+        gains = {k: v for k, v in changes.items() if k in GAINS}
+        if gains and not self._applying:
+            self.params = self._params(gains)
             self.pid.params = self.params
+            self._publish_event('live', math.nan, gains)
+
+    def _publish_event(self, source: str, scheduled_s: float, changes: dict) -> None:
+        msg = GraphEvent()
+        ns_to_stamp(msg.header.stamp, self._stamp_ns)
+        msg.header.frame_id = 'jack'
+        msg.tick_index = self._stamp_ns // self.period_ns
+        msg.node = self.get_name()
+        msg.source = source
+        msg.scheduled_time_s = float(scheduled_s)
+        msg.parameter_names = list(changes)
+        msg.parameter_values = [float(v) for v in changes.values()]
+        self.events_pub.publish(msg)
+        self.get_logger().info(f'{source} change at tick {msg.tick_index}: ' + ', '.join(
+            f'{k}={float(v):g}' for k, v in changes.items()))
+
+    def _apply_due_events(self, t_ns: int) -> None:
+        """Gain changes due at the tick stamped ``t_ns`` take effect before its update."""
+        from rclpy.parameter import Parameter
+        self._stamp_ns = t_ns
+        for ev in self.schedule.due(t_ns):
+            changes = ev.as_dict()
+            self.params = replace(self.params, **changes)
+            self.pid.params = self.params
+            self._publish_event('schedule', ev.t_s, changes)
+            self._applying = True
+            try:
+                self.set_parameters([Parameter(k, value=float(v)) for k, v in changes.items()])
+            finally:
+                self._applying = False
 
     def _send(self, stamp, current_a):
         msg = ServovalveCommand()
@@ -115,6 +181,9 @@ class Controller(Node):
 
     def _on_state(self, msg: ActuatorState):
         self.measured_m = msg.jack_position_measured_m
+        self._stamp_ns = stamp_to_ns(msg.header.stamp)
+        if self.schedule.pending:
+            self._apply_due_events(self._stamp_ns)
         if self.mode == 'realtime':
             if self.trigger == 'state':
                 began = time.monotonic_ns()

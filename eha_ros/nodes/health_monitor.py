@@ -46,6 +46,7 @@ from eha_ros.surrogates.monitor import ITEM_UNITS, ITEMS, MonitorCore
 
 from .common import (TOPIC_DIAGNOSTICS, TOPIC_HEALTH, TOPIC_STATE, advertise, declare,
                      ns_to_stamp, run_node, stamp_to_ns, subscribe, validator)
+from .handshake import Handshake
 
 _LEVEL_BYTES = {LEVEL_OK: DiagnosticStatus.OK, LEVEL_WARN: DiagnosticStatus.WARN,
                 LEVEL_ERROR: DiagnosticStatus.ERROR}
@@ -132,7 +133,11 @@ class HealthMonitor(Node):
         self.dropped = 0
         self._last_state_wall = None
         self._stale = False
-        subscribe(self, ActuatorState, TOPIC_STATE, self._on_state)
+        state_sub = subscribe(self, ActuatorState, TOPIC_STATE, self._on_state)
+        self.handshake = Handshake(self)
+        for entity, topic in ((state_sub, TOPIC_STATE), (self.health_pub, TOPIC_HEALTH),
+                              (self.diag_pub, TOPIC_DIAGNOSTICS)):
+            self.handshake.watch(entity, topic)
         self.create_timer(0.5, self._check_stale,
                           clock=RosClock(clock_type=ClockType.STEADY_TIME))
 
@@ -236,6 +241,8 @@ class HealthMonitor(Node):
         return arr
 
     def _check_stale(self):
+        if self._last_state_wall is None and not self.handshake.started:
+            return  # before the graph's start there is nothing to be stale about
         if self._last_state_wall is None:
             silent = True
             reason = 'no actuator state received yet'

@@ -34,6 +34,7 @@ is refused with the reason.
 
 from __future__ import annotations
 
+import math
 import time
 
 from rclpy.clock import Clock as RosClock
@@ -41,27 +42,27 @@ from rclpy.clock import ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
-from eha_ros.msg import ActuatorState, ServovalveCommand
+from eha_ros.graph import MODELS, TOPIC_EVENTS, topic_qos
+from eha_ros.msg import ActuatorState, GraphEvent, ServovalveCommand
 from eha_ros.physics import ParameterError, Plant, SimulationDiverged, load_params
+from eha_ros.physics.events import EventSchedule, parse_event, PLANT_RUNTIME
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import S_P1, S_P2, S_XJ
 from eha_ros.physics.valve_test import PreflightCheck, ValveTest
 
-from eha_ros.graph import MODELS
-
-from .common import (MODES, TOPIC_CLOCK, TOPIC_SERVOVALVE, TOPIC_STATE, TickTiming, advertise,
-                     declare, declare_physics, ns_to_stamp, run_node, stamp_to_ns, subscribe,
-                     validator)
+from .common import (apply_realtime_settings, at_start, begin_timing, declare, declare_physics, declare_realtime, MODES,
+                     ns_to_stamp, run_node, stamp_to_ns, subscribe, TickTiming, TOPIC_CLOCK,
+                     TOPIC_SERVOVALVE, TOPIC_STATE, advertise, validator)
+from .handshake import StartCoordinator
 
 #: Flows [m^3/s] of the valve test by default: three of the diagnostic grid (DB4).
 DEFAULT_TEST_FLOWS_M3_S = (2.5714285714285714e-05, 4.285714285714286e-05, 6.0e-05)
 
-#: Parameters that may change during a run (progressive degradation).
-WEAR = ('overlap_supply_m', 'overlap_return_m', 'radial_clearance_m', 'eccentricity_ratio',
-        'valve_degradation', 'demagnetisation', 'filter_clogging', 'feedback_backlash_m',
-        'surface_backlash_m', 'jack_static_friction_n', 'jack_dynamic_friction_n',
-        'spool_static_friction_n', 'spool_dynamic_friction_n', 'hysteresis_a', 'offset_a',
-        'leakage_coeff_m3_s_pa', 'external_force_n')
+#: Parameters that may change during a run (progressive degradation, injected faults).
+WEAR = PLANT_RUNTIME
+
+#: The nodes the plant waits for by default (the loop); the harness names every node it runs.
+DEFAULT_HANDSHAKE_NODES = ('command_generator', 'controller')
 
 
 def load_fluid(model: str, params):
@@ -78,6 +79,7 @@ class ServovalvePlant(Node):
     """The plant node."""
 
     def __init__(self, **kwargs):
+        init_ns = time.monotonic_ns()
         super().__init__('servovalve_plant', **kwargs)
         path = declare(self, 'params_file', '', 'physical parameter YAML (empty: the installed '
                        'config/eha_params.yaml)')
@@ -92,13 +94,19 @@ class ServovalvePlant(Node):
                                   'time [s] (0: never)', 0.0, 1e9)
         self.resend_s = declare(self, 'resend_s', 2.0, 'lockstep: re-publish the tick after '
                                 'this long without its command [s]', 0.01, 60.0)
-        self.start_subscribers = declare(self, 'start_subscribers', 1, 'lockstep: state '
-                                         'subscribers to wait for before the first tick (the '
-                                         'controller, plus recorders)', 1, 100)
-        self.start_clock_subscribers = declare(
-            self, 'start_clock_subscribers', 1, 'lockstep: /clock subscriptions to wait for '
-            'before the first tick (the command generator, plus every sim-time node and '
-            'recorder), so that none misses tick 0', 1, 100)
+        handshake_nodes = declare(self, 'handshake_nodes', list(DEFAULT_HANDSHAKE_NODES),
+                                  'start-up handshake: nodes whose endpoints must all have '
+                                  'matched before the first tick (this node is always one)')
+        handshake_timeout_s = declare(self, 'handshake_timeout_s', 0.0, 'start-up handshake: '
+                                      'fail after this long without a start [s] (0: wait)',
+                                      0.0, 3600.0)
+        start_delay_s = declare(self, 'start_delay_s', 0.25, 'realtime: the common start '
+                                'lies this long after the handshake completes, so that every '
+                                'node has it in time [s]', 0.0, 10.0)
+        events = declare(self, 'events', [''], "faults on the simulation clock: 'T:name=value"
+                         "[,name=value]' entries, each applied at the first tick whose time "
+                         "is at least T s (empty entries are ignored)")
+        realtime = declare_realtime(self)
         valve_test = declare(self, 'valve_test', False, 'run the diagnostic valve test (map '
                              'sweep, jack clamped) before operating')
         flows = declare(self, 'valve_test_flows_m3_s', list(DEFAULT_TEST_FLOWS_M3_S),
@@ -118,6 +126,12 @@ class ServovalvePlant(Node):
             raise ParameterError(f'the tick period {period_ns} ns must be a whole number of '
                                  f'dt_s = {dt_s:g} s')
         self.period_ns = period_ns
+        self.schedule = EventSchedule([parse_event(e) for e in events if e.strip()],
+                                      allowed=WEAR, period_ns=period_ns)
+        self.schedule.validate(params)
+        for ev in self.schedule:
+            if self.fluid is not None:
+                self.fluid.check_params(replace(params, **ev.as_dict()))
         self.steps_per_tick = period_ns // self.plant.dt_ns
         self.valve_test = ValveTest(flows, period_ns, dt_s) if valve_test else None
         self.test_tick = 0
@@ -129,42 +143,54 @@ class ServovalvePlant(Node):
         self.preflight_tick = 0
         self.preflight_last = -1   # self.ticks of the last pre-flight tick
         self.add_on_set_parameters_callback(validator(self._on_set))
+        self._applying = False  # a scheduled event is being mirrored into the parameters
+        self.events_pub = self.create_publisher(GraphEvent, TOPIC_EVENTS,
+                                                topic_qos(TOPIC_EVENTS))
         self.state_pub = advertise(self, ActuatorState, TOPIC_STATE)
-        subscribe(self, ServovalveCommand, TOPIC_SERVOVALVE, self._on_command)
+        command_sub = subscribe(self, ServovalveCommand, TOPIC_SERVOVALVE, self._on_command)
         self.current_a = 0.0
         self.done = False
         self.diverged = False
         self.ticks = 0
+        self.fatal = None
         self.timing = TickTiming(self, rate, self.mode == 'realtime')
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
+        self._steady = steady
+        self._started = False
+        self._last_pub_ns = 0
+        self.slipped_ticks = 0
         if self.mode == 'lockstep':
             self.clock_pub = advertise(self, Clock, TOPIC_CLOCK)
-            self._started = False
-            self._last_pub_ns = 0
-            self._watchdog = self.create_timer(0.01, self._on_watchdog, clock=steady)
-        else:
-            self._steady = steady
-            self._t0_ns = None
-            self._rt_ticks = 0
-            self.slipped_ticks = 0
-            self.create_timer(period_ns * 1e-9, self._on_timer, clock=steady)
+        self.handshake = StartCoordinator(self, handshake_nodes, self.mode,
+                                          handshake_timeout_s, start_delay_s,
+                                          on_start=self._on_start)
+        for entity, topic in ((self.state_pub, TOPIC_STATE), (command_sub, TOPIC_SERVOVALVE),
+                              (self.timing.pub, '/diagnostics')):
+            self.handshake.watch(entity, topic)
+        if self.mode == 'lockstep':
+            self.handshake.watch(self.clock_pub, TOPIC_CLOCK)
+        self._watchdog = self.create_timer(0.01, self._on_watchdog, clock=steady)
+        self._warm_up_s = (time.monotonic_ns() - init_ns) * 1e-9
+        apply_realtime_settings(self, realtime)
         self.get_logger().info(f'model {self.model}, dt {dt_s:g} s, {self.steps_per_tick} '
-                               f'steps per tick, {self.mode}')
+                               f'steps per tick, {self.mode}; waiting for '
+                               f'{", ".join(self.handshake.nodes)}')
 
     # parameters --------------------------------------------------------------------------
     def _on_set(self, changes):
         frozen = {'model', 'dt_s', 'rate_hz', 'mode', 'seed', 'params_file', 'valve_test',
-                  'valve_test_flows_m3_s', 'preflight_check'} & set(changes)
+                  'valve_test_flows_m3_s', 'preflight_check', 'handshake_nodes',
+                  'handshake_timeout_s', 'start_delay_s', 'events', 'thread_priority',
+                  'cpu_affinity', 'lock_memory'} & set(changes)
         if frozen:
             raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
         wear = {k: v for k, v in changes.items() if k in WEAR}
-        if wear:
+        if wear and not self._applying:
             params = replace(self.plant.params, **wear)  # raises with the reason if bad
             if self.fluid is not None:
                 self.fluid.check_params(params)
             self.plant.set_params(params)
-            self.get_logger().info('parameters changed: ' + ', '.join(
-                f'{k}={v:g}' for k, v in wear.items()))
+            self._publish_event('live', math.nan, wear)
         if 'duration_s' in changes:
             self.duration_s = float(changes['duration_s'])
         if 'max_catch_up' in changes:
@@ -172,11 +198,43 @@ class ServovalvePlant(Node):
         if 'resend_s' in changes:
             self.resend_s = float(changes['resend_s'])
 
+    def _publish_event(self, source: str, scheduled_s: float, changes: dict) -> None:
+        """Publish (latched) a parameter change that takes effect from the current tick."""
+        msg = GraphEvent()
+        ns_to_stamp(msg.header.stamp, self.plant.time_ns)
+        msg.header.frame_id = 'jack'
+        msg.tick_index = self.plant.time_ns // self.period_ns
+        msg.node = self.get_name()
+        msg.source = source
+        msg.scheduled_time_s = float(scheduled_s)
+        msg.parameter_names = list(changes)
+        msg.parameter_values = [float(v) for v in changes.values()]
+        self.events_pub.publish(msg)
+        self.get_logger().info(
+            f'{source} change at t = {self.plant.time_s:.6g} s (tick {msg.tick_index}): '
+            + ', '.join(f'{k}={float(v):g}' for k, v in changes.items()))
+
+    def _apply_due_events(self) -> None:
+        """Scheduled events due at this tick (time at least T) take effect before its steps;
+        the node's parameters are updated to match."""
+        from rclpy.parameter import Parameter
+        for ev in self.schedule.due(self.plant.time_ns):
+            changes = ev.as_dict()
+            self.plant.set_params(replace(self.plant.params, **changes))
+            self._publish_event('schedule', ev.t_s, changes)
+            self._applying = True
+            try:
+                self.set_parameters([Parameter(k, value=float(v)) for k, v in changes.items()])
+            finally:
+                self._applying = False
+
     # stepping ----------------------------------------------------------------------------
     def _advance(self):
         if self.done or self.diverged:
             return False
         try:
+            if self.schedule.pending:
+                self._apply_due_events()
             if self.valve_test is not None and self.test_tick < self.valve_test.n_ticks:
                 self.test_tick += 1
                 self.test_sample = self.valve_test.sample(self.test_tick, self.plant.params)
@@ -264,13 +322,27 @@ class ServovalvePlant(Node):
         self.state_pub.publish(self._state_msg())
         self._last_pub_ns = RosClock(clock_type=ClockType.STEADY_TIME).now().nanoseconds
 
-    # realtime ----------------------------------------------------------------------------
-    def _now_ns(self) -> int:
-        """Wall-clock time [ns] that realtime ticks fall due on (the steady clock)."""
-        return self._steady.now().nanoseconds
+    # start -------------------------------------------------------------------------------
+    def _on_start(self, start_ns: int, mode: str) -> None:
+        """The handshake is complete: lockstep publishes tick 0 now; realtime publishes tick 0
+        at the common start time and tick k k periods later."""
+        start_mono = self.handshake.start_monotonic_ns()
+        begin_timing(self, self.timing, start_mono, self._warm_up_s)
+        self._started = True
+        if self.mode == 'lockstep':
+            self._publish_tick()
+            return
+        self._rt_anchor = start_mono
+        self._rt_next = 0
+        at_start(self, start_mono, self._begin_realtime)
 
+    def _begin_realtime(self) -> None:
+        self.create_timer(self.period_ns * 1e-9, self._on_timer, clock=self._steady)
+        self._on_timer()
+
+    # realtime ----------------------------------------------------------------------------
     def _on_timer(self):
-        now = self._now_ns()
+        now = self._steady.now().nanoseconds
         began = time.monotonic_ns()
         try:
             self._catch_up(now)
@@ -278,25 +350,28 @@ class ServovalvePlant(Node):
             self.timing.busy(began)
 
     def _catch_up(self, now: int):
-        if self._t0_ns is None:
-            self._t0_ns = now - self.period_ns  # the first tick falls due now
-        behind = (now - self._t0_ns) // self.period_ns - self._rt_ticks
+        """Run every tick due by ``now``: tick k falls due at the start plus k periods (plus
+        the periods slipped so far); at most ``max_catch_up`` at once, the rest slips."""
+        due = (now - self._rt_anchor) // self.period_ns
+        behind = due - self._rt_next + 1
+        if behind <= 0:
+            return
         if behind > self.max_catch_up:
             slip = behind - self.max_catch_up
             self.slipped_ticks += slip
             self.timing.slip(slip)
-            self._t0_ns += slip * self.period_ns
+            self._rt_anchor += slip * self.period_ns
             behind = self.max_catch_up
             self.get_logger().warning(
                 f'{slip} ticks behind the wall clock: slipped ({self.slipped_ticks} in all)',
                 throttle_duration_sec=1.0)
         for _ in range(behind):
-            self._rt_ticks += 1
-            if not self._advance():
+            k = self._rt_next
+            if k > 0 and not self._advance():
                 return
+            self._rt_next += 1
             self.state_pub.publish(self._state_msg())
-            # tick k fell due at t0 + k periods
-            self.timing.tick(now, now - (self._t0_ns + self._rt_ticks * self.period_ns))
+            self.timing.tick(now, now - (self._rt_anchor + k * self.period_ns))
 
     def _on_command(self, msg: ServovalveCommand):
         if self.mode == 'realtime':
@@ -312,25 +387,19 @@ class ServovalvePlant(Node):
         self.timing.busy(began)
 
     # lockstep ----------------------------------------------------------------------------
-    def _ready(self) -> bool:
-        """Everyone the loop needs has matched: a state reader (controller) answering with
-        servovalve commands, clock readers (command generator, sim-time nodes, recorders)."""
-        return (self.state_pub.get_subscription_count() >= self.start_subscribers
-                and self.clock_pub.get_subscription_count() >= self.start_clock_subscribers
-                and self.count_publishers(TOPIC_SERVOVALVE) >= 1)
-
     def _on_watchdog(self):
-        now = RosClock(clock_type=ClockType.STEADY_TIME).now().nanoseconds
         if not self._started:
-            if self._ready():
-                self._started = True
-                self._publish_tick()
+            if self.handshake.error and not self.fatal:
+                self.fatal = self.handshake.error
+                self.get_logger().error(self.fatal)
             return
-        if self.done or self.diverged:
+        if self.mode != 'lockstep' or self.done or self.diverged:
             return
+        now = self._steady.now().nanoseconds
         if now - self._last_pub_ns > self.resend_s * 1e9:
             self.get_logger().warning(f'no command for tick t = {self.plant.time_s:.6g} s: '
-                                   're-publishing it')
+                                      're-publishing it')
+            self.timing.resent += 1
             self._publish_tick()
 
 

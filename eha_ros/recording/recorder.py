@@ -87,10 +87,6 @@ LOSS_DETECTION = 'publication_sequence_number'
 #: After a stop request, keep taking messages until none arrived for this long (s).
 _DRAIN_QUIET_S = 0.1
 _DRAIN_MAX_S = 2.0
-#: The loop's topics: the /clock subscription waits until each of these has a publisher matched
-#: on this side, at most CLOCK_WAIT_S seconds.
-LOOP_TOPICS = (graph.TOPIC_STATE, graph.TOPIC_COMMAND, graph.TOPIC_SERVOVALVE)
-CLOCK_WAIT_S = 10.0
 
 
 #: The recorder's parameters: ``name -> (default, description)`` (the module docstring's table).
@@ -258,22 +254,17 @@ class Recorder(Node):
         self._health_level = graph.LEVEL_OK
         self.writer = None if self.snapshot_ns else self._open_writer()
         qos = graph.graph_qos(depth=queue_depth)
+        # The start-up handshake (eha_ros.nodes.handshake): the graph starts only once every
+        # subscription here has matched its publishers, so the recording misses no tick.
+        from eha_ros.nodes.handshake import Handshake
+        self.handshake = Handshake(self)
         for state in states:
             self._states[state.topic] = state
-            if state.topic != graph.TOPIC_CLOCK:
-                state.subscription = self.create_subscription(
-                    state.cls, state.topic, self._callback(state), qos, raw=True)
-        # /clock last: a lockstep plant starts when its /clock readers have matched, as its
-        # writers see them.  Discovery can be one-sided for a while (the plant's writer has
-        # matched this reader, this reader not yet the writer) and a volatile reader loses what
-        # was sent before its side matched, so the /clock reader - what lets the loop start -
-        # is created only when the loop's topics have their publishers matched here too (or
-        # after CLOCK_WAIT_S, for graphs that publish some of them late or never).
-        self._clock_state = self._states.get(graph.TOPIC_CLOCK)
-        if self._clock_state is not None:
-            self._clock_qos = qos
-            self._clock_deadline = time.monotonic() + CLOCK_WAIT_S
-            self._clock_timer = self.create_timer(0.01, self._subscribe_clock_when_matched)
+            topic_qos = (graph.topic_qos(state.topic) if state.topic.rsplit('/', 1)[-1] in
+                         {t.rsplit('/', 1)[-1] for t in graph.LATCHED_TOPICS} else qos)
+            state.subscription = self.create_subscription(
+                state.cls, state.topic, self._callback(state), topic_qos, raw=True)
+            self.handshake.watch(state.subscription, state.topic)
         if self.snapshot_ns:
             from std_srvs.srv import Trigger
 
@@ -286,17 +277,6 @@ class Recorder(Node):
         self.get_logger().info(
             f'{what} {len(states)} topics to {path}: '
             f'{", ".join(s.topic for s in states)}')
-
-    def _subscribe_clock_when_matched(self) -> None:
-        loop = [self._states[t].subscription for t in LOOP_TOPICS if t in self._states]
-        if (any(sub.get_publisher_count() < 1 for sub in loop)
-                and time.monotonic() < self._clock_deadline):
-            return
-        self._clock_timer.cancel()
-        self.destroy_timer(self._clock_timer)
-        state = self._clock_state
-        state.subscription = self.create_subscription(
-            state.cls, state.topic, self._callback(state), self._clock_qos, raw=True)
 
     # files ---------------------------------------------------------------------------------
     def _next_path(self) -> Path:
@@ -519,7 +499,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     node = None
     try:
         try:
+            from eha_ros.nodes.common import refuse_undeclared
             node = Recorder(parameter_overrides=overrides)
+            refuse_undeclared(node)
         except (RecorderError, ParameterException, ValueError, FileExistsError) as exc:
             print(f'recorder: error: {" ".join(str(exc).split())}', file=sys.stderr)
             return 2

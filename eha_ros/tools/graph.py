@@ -22,10 +22,23 @@ parameters (``mode``, ``use_sim_time``, ``start_subscribers``, ...): from a para
 ``scenario``, ``model``, ``mode``, ``rate_hz``, ``dt_s`` and ``seed`` are taken as the options'
 defaults.
 
+Events (``--event T:node.parameter=value``, repeatable; a scenario's ``events:``) are handed to
+the plant or the controller before the run and take effect at the first tick whose time is at
+least T, in both modes; each is published on ``/eha/events`` (and recorded) with its tick.
+``--rt`` gives the ticking nodes real-time settings (SCHED_FIFO, locked memory); where the OS
+refuses them each node logs one warning and runs on.
+
+The graph starts when every node's endpoints have matched every peer (the start-up
+handshake); the summary's times and each node's timing run from that synchronised start, and
+discovery is reported beside them. In lockstep the summary shows simulated seconds per wall
+second and re-sent ticks.
+
 Exit status: 0 after a complete run; 1 when a node failed (exited early, the plant diverged,
-the graph stalled, the recorder failed); 2 on bad input (unknown scenario, model or node,
-bad ``--set``, unreadable params file, existing output), one line on stderr; 130 after
-Ctrl-C/SIGTERM.
+the graph stalled or never completed its start-up handshake, the recorder failed) or the data
+are incomplete (a message missing: the summary says which); 2 on bad input (unknown scenario,
+model, node or parameter - a misspelt name is refused with the nearest declared ones -, bad
+``--set`` or ``--event``, unreadable params file, existing output), one line on stderr; 130
+after Ctrl-C/SIGTERM.
 """
 
 from __future__ import annotations
@@ -47,8 +60,8 @@ __all__ = ['main', 'read_params_file', 'node_defaults', 'defaults_yaml']
 PROG = 'eha-graph'
 
 #: Parameters the harness sets itself on every node; a params file or ``--set`` may not.
-MANAGED = frozenset(('mode', 'use_sim_time', 'start_subscribers', 'start_clock_subscribers',
-                     'duration_s', 'output', 'valve_test', 'valve_test_flows_m3_s'))
+MANAGED = frozenset(('mode', 'use_sim_time', 'handshake_nodes', 'duration_s', 'output',
+                     'valve_test', 'valve_test_flows_m3_s', 'events'))
 
 #: Params-file entries taken as the options' defaults: ``(node, parameter) -> option``.
 PROMOTED = {('command_generator', 'scenario'): 'scenario', ('servovalve_plant', 'model'): 'model',
@@ -98,10 +111,17 @@ def read_params_file(path) -> dict:
         else:
             raise UsageError(f'params file {path}: unknown node {key!r} (nodes: '
                              f'{", ".join(GRAPH_NODES)})')
+    # a /** entry applies to the nodes that declare it; one that no node declares is refused
+    from eha_ros.harness import declared_parameters
+    declared = declared_parameters()
+    for name in common:
+        if not any(name in declared.get(node, ()) for node in GRAPH_NODES):
+            raise UsageError(f'params file {path}: no node declares {name!r} (section /**)')
     out = {}
     for node in GRAPH_NODES:
-        if common or node in own:
-            out[node] = dict(common, **own.get(node, {}))
+        shared = {k: v for k, v in common.items() if k in declared.get(node, ())}
+        if shared or node in own:
+            out[node] = dict(shared, **own.get(node, {}))
     return out
 
 
@@ -246,24 +266,42 @@ def build_config(args):
         raise UsageError(f'{args.record} exists: refusing to overwrite it')
     if args.record and not Path(args.record).resolve().parent.is_dir():
         raise UsageError(f'folder of {args.record} does not exist')
-    return GraphConfig(scenario=options['scenario'], model=options['model'],
-                       mode=options['mode'], duration_s=args.duration,
-                       rate_hz=float(options['rate_hz']), dt_s=float(options['dt_s']),
-                       seed=int(options['seed']), health=args.health,
-                       record=args.record or '',
-                       node_params=node_params)
+    config = GraphConfig(scenario=options['scenario'], model=options['model'],
+                         mode=options['mode'], duration_s=args.duration,
+                         rate_hz=float(options['rate_hz']), dt_s=float(options['dt_s']),
+                         seed=int(options['seed']), health=args.health,
+                         record=args.record or '', events=parse_events(args.event),
+                         node_params=node_params, rt=args.rt,
+                         handshake_timeout_s=min(float(args.timeout), 600.0))
+    if not args.health:  # a params file's health monitor section has nothing to apply to
+        config.node_params.pop('health_monitor', None)
+    if not args.record:
+        config.node_params.pop('recorder', None)
+    try:
+        config.node_parameters()  # refuses unknown nodes, parameters and event targets
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    return config
 
 
-def _missing(stamp_ns, rate_hz: float) -> int:
-    """Ticks between the first and the last state that never arrived."""
-    if stamp_ns.size < 2:
-        return 0
-    expected = int(round((stamp_ns.max() - stamp_ns.min()) * 1e-9 * rate_hz)) + 1
-    return max(0, expected - int(np.unique(stamp_ns).size))
+def parse_events(items) -> list:
+    """``['T:node.parameter=value', ...]`` -> ``[(T, node, {parameter: value})]``."""
+    from eha_ros.physics.events import parse_event
+    out = []
+    for item in items or ():
+        head, colon, rest = item.partition(':')
+        target, eq, value = rest.partition('=')
+        node, dot, name = target.partition('.')
+        if not colon or not eq or not dot or not name.strip():
+            raise UsageError(f'--event {item!r}: expected T:node.parameter=value')
+        ev = parse_event(f'{head}:{name.strip()}={value}')
+        out.append((ev.t_s, node.strip(), ev.as_dict()))
+    return out
 
 
 def summarize(result, processes: bool, recording_info=None) -> dict:
-    """The run's summary: what ran, how far, how fast, health, recording, node timing."""
+    """The run's summary: what ran, how far, how fast, what arrived, health, recording, events
+    and node timing (from the synchronised start; discovery separately)."""
     cfg = result.config
     st = result.state
     ticks = st['tick']
@@ -273,12 +311,22 @@ def summarize(result, processes: bool, recording_info=None) -> dict:
         'complete': not result.interrupted and result.sim_s >= cfg.resolved_duration() - 1e-9,
         'interrupted': result.interrupted,
         'simulated_s': result.sim_s, 'wall_s': result.wall_s,
-        'real_time_factor': result.sim_s / result.wall_s if result.wall_s > 0 else None,
+        'discovery_s': result.discovery_s,
         'states': int(ticks.size),
-        'ticks_missing': _missing(st['stamp_ns'], cfg.rate_hz),
+        'ticks_missing': len(result.missing.get('state', ())),
         'current_commands': int(result.servovalve['current_command_a'].size),
+        'messages': dict(result.messages),
+        'data_complete': result.complete,
+        'data_loss': result.loss_report(),
         'diverged': bool(st['status'].size and st['status'][-1] == graph.STATUS_DIVERGED),
+        'events': result.events,
     }
+    if cfg.mode == 'lockstep':
+        out['simulated_s_per_wall_s'] = (result.sim_s / result.wall_s if result.wall_s > 0
+                                         else None)
+        out['resent_ticks'] = result.resent_ticks
+    else:
+        out['real_time_factor'] = result.sim_s / result.wall_s if result.wall_s > 0 else None
     if ticks.size:
         out['final_jack_position_m'] = float(st['jack_position_m'][-1])
         out['final_command_m'] = float(result.command['position_setpoint_m'][-1]) \
@@ -308,15 +356,26 @@ def _print_text(summary: dict, out=sys.stdout) -> None:
                                               'incomplete')
     print(f'{PROG}: {s["scenario"]} model {s["model"]}, {s["mode"]}, {s["layout"]}: {state}',
           file=out)
-    rtf = s['real_time_factor']
-    print(f'  simulated {s["simulated_s"]:.3f} s in {s["wall_s"]:.2f} s wall'
-          + (f' ({rtf:.2f} x real time)' if rtf else ''), file=out)
+    if s['mode'] == 'lockstep':
+        rate = s['simulated_s_per_wall_s']
+        pace = (f' ({rate:.2f} simulated s per wall s, {s["resent_ticks"]} ticks re-sent)'
+                if rate else '')
+    else:
+        rtf = s['real_time_factor']
+        pace = f' ({rtf:.3f} x real time)' if rtf else ''
+    print(f'  simulated {s["simulated_s"]:.3f} s in {s["wall_s"]:.2f} s wall from the '
+          f'synchronised start{pace}; start-up (discovery) {s["discovery_s"]:.2f} s', file=out)
     print(f'  {s["states"]} states ({s["ticks_missing"]} ticks missing), '
           f'{s["current_commands"]} current commands'
           + ('; the plant DIVERGED' if s['diverged'] else ''), file=out)
+    if not s['data_complete']:
+        print(f'  DATA INCOMPLETE: {s["data_loss"]}', file=out)
     if 'final_jack_position_m' in s:
         print(f'  jack at {s["final_jack_position_m"] * 1e3:.5f} mm, command '
               f'{(s["final_command_m"] or 0.0) * 1e3:.5f} mm', file=out)
+    for ev in s['events']:
+        print(f'  event ({ev["source"]}) at tick {ev["tick_index"]} on {ev["node"]}: '
+              + ', '.join(f'{k}={v:g}' for k, v in ev['changes'].items()), file=out)
     if 'health' in s:
         h = s['health']
         if h is None:
@@ -332,12 +391,19 @@ def _print_text(summary: dict, out=sys.stdout) -> None:
               f'{sum(r["lost"].values())} lost'
               + ('' if r['complete'] else ' (file INCOMPLETE: run eha-recover)'), file=out)
     for node, v in s.get('timing', {}).items():
-        print(f'  {node}: {v.get("Actual frequency (Hz)")} Hz, '
-              f'{v.get("On time since startup (%)")} % on time, '
-              f'{v.get("Late ticks since startup")} late, '
-              f'{v.get("Slipped ticks since startup")} slipped, '
-              f'{v.get("Overruns since startup")} overruns, jitter p99 '
-              f'{v.get("Period jitter p99 (ms)")} ms, {v.get("Busy (core)")} core', file=out)
+        if s['mode'] == 'lockstep':
+            print(f'  {node}: {v.get("Events since startup")} ticks, '
+                  f'{v.get("Simulated s per wall s")} simulated s per wall s, '
+                  f'{v.get("Overruns since startup")} overruns, {v.get("Busy (core)")} core',
+                  file=out)
+        else:
+            print(f'  {node}: {v.get("Actual frequency (Hz)")} Hz, '
+                  f'{v.get("On time since startup (%)")} % on time, '
+                  f'{v.get("Late ticks since startup")} late, '
+                  f'{v.get("Slipped ticks since startup")} slipped, '
+                  f'{v.get("Overruns since startup")} overruns, jitter p99 '
+                  f'{v.get("Period jitter p99 since startup (ms)")} ms, '
+                  f'{v.get("Busy (core)")} core', file=out)
 
 
 def main(argv=None) -> int:
@@ -368,8 +434,16 @@ def main(argv=None) -> int:
                     help='tick rate (default 1000)')
     ap.add_argument('--dt', dest='dt_s', type=float, metavar='S',
                     help='plant integration step (default 1e-6)')
+    ap.add_argument('--event', action='append', metavar='T:NODE.NAME=VALUE',
+                    help='change a parameter at simulated time T s (repeatable), applied at '
+                         'the first tick at or after T, e.g. '
+                         '0.1:servovalve_plant.overlap_supply_m=2.7e-6')
+    ap.add_argument('--rt', action='store_true',
+                    help='real-time settings for the ticking nodes: SCHED_FIFO priority, '
+                         'locked memory (see README: what a rig needs)')
     ap.add_argument('--timeout', type=float, default=60.0, metavar='S',
-                    help='give up when no state arrives for S seconds (default 60)')
+                    help='give up when the start-up handshake or a state takes longer than '
+                         'S seconds (default 60)')
     ap.add_argument('--isolated', action='store_true',
                     help='run in a ROS domain of its own and a temporary log folder')
     ap.add_argument('--json', action='store_true', help='print the summary as one JSON object')
@@ -388,7 +462,7 @@ def main(argv=None) -> int:
         return 0
     from rclpy.exceptions import ParameterException
 
-    from eha_ros.harness import GraphError, run_graph
+    from eha_ros.harness import GraphConfigError, GraphDataLoss, GraphError, run_graph
     from eha_ros.physics import ParameterError
     from eha_ros.recording.stop import StopRequest
     try:
@@ -412,6 +486,15 @@ def main(argv=None) -> int:
             env = env_cm.__enter__()
         result = run_graph(config, processes=args.processes, env=env, timeout_s=args.timeout,
                            stop=lambda: stop.requested, on_start=started)
+    except GraphConfigError as exc:  # a node refused a parameter
+        print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
+        return 2
+    except GraphDataLoss as exc:  # the run ended, incomplete: show what there is, fail loudly
+        result = exc.result
+        summary = summarize(result, args.processes)
+        print(json.dumps(summary, default=float)) if args.json else _print_text(summary)
+        print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
+        return 1
     except GraphError as exc:
         print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
         return 130 if stop.requested else 1
@@ -433,6 +516,9 @@ def main(argv=None) -> int:
         _print_text(summary)
     if result.interrupted:
         return 130
+    if not result.complete:  # realtime: lockstep raised above
+        print(f'{PROG}: error: data incomplete: {result.loss_report()}', file=sys.stderr)
+        return 1
     if summary['diverged']:
         print(f'{PROG}: error: the plant diverged at t = {result.sim_s:.6f} s', file=sys.stderr)
         return 1
