@@ -15,8 +15,10 @@ Settings (:class:`RealtimeSettings`, applied by :func:`apply_realtime`)
     ``mlockall(MCL_CURRENT | MCL_FUTURE)``: every page mapped now is faulted in and locked, and
     every later mapping is populated when it is made, so the tick never waits for a page fault
     (nor for swap).  The price: resident memory grows to the mapped size (thread stacks are
-    faulted in whole, a few MiB each), and with a finite ``RLIMIT_MEMLOCK`` and no
-    ``CAP_IPC_LOCK`` an allocation that would exceed the limit fails.
+    faulted in whole): a process that has imported rclpy, numba and numpy and compiled the
+    plant goes from about 210 MB resident to 535 MB (700 MB locked, ``VmLck``).  With a
+    finite ``RLIMIT_MEMLOCK`` and no ``CAP_IPC_LOCK`` an allocation that would exceed the limit
+    fails.
 
 Unlike ``ros2_control_node``, which gives ``SCHED_FIFO`` to its control thread only,
 :func:`apply_realtime` sets every thread of the process (``/proc/self/task``): an rclpy node's
@@ -45,14 +47,17 @@ is no such cap.  A 1 kHz tick that only needs part of each millisecond never mee
 Garbage collector
 -----------------
 CPython frees most objects by reference counting; the cyclic collector runs when allocations
-minus deallocations of tracked objects pass the gen-0 threshold (700), and a full (gen-2)
-collection traverses every tracked object alive: after importing rclpy, numba and numpy and
-compiling the plant, some 240 000 objects, one full collection ~0.1 s on this project's
-machine, i.e. a hundred missed 1 kHz ticks.  :func:`settle_gc` collects once and then freezes
-what is alive (``gc.freeze``: moved to a permanent generation that collections skip), so
-later collections only traverse what the loop itself allocated.  :class:`GcPauses` times every
-collection through ``gc.callbacks``.  ``bench/gc_pauses.py`` measures the three conditions
-(default, settled, disabled).
+minus deallocations of container objects pass the gen-0 threshold (700), so a tick that frees
+what it allocates never triggers it (``bench/gc_pauses.py``: no collection at all in 10 s of
+1 kHz plant ticks, nor in an rclpy executor publishing at 1 kHz).  Collections come with net
+growth (objects kept: histories, in-memory recording; reference cycles), and a full (gen-2)
+one, due once the survivors pass a quarter of the long-lived heap, traverses every tracked
+object alive: after importing rclpy, numba and numpy and compiling the plant some 190 000,
+127-143 ms per full collection on this project's 2-CPU machine, i.e. over a hundred missed
+1 kHz ticks.  :func:`settle_gc` collects once and then freezes what is alive (``gc.freeze``:
+moved to a permanent generation that collections skip), so later collections only traverse
+what the process allocated since (the same bench, every message kept: 29 ms after 60 s instead
+of 127 and 143 ms).  :class:`GcPauses` times every collection through ``gc.callbacks``.
 """
 
 from __future__ import annotations
@@ -135,7 +140,8 @@ class RealtimeSettings:
 #:   thread, at equal FIFO priority, could not preempt each other; pinning needs a per-machine
 #:   plan (an isolated CPU per node) that a default cannot make.
 #: - ``lock_memory=True``: as ``ros2_control_node``'s default: no page fault (first touch of a
-#:   new heap page, a code page evicted under memory pressure) inside a tick.
+#:   new heap page, a code page evicted under memory pressure) inside a tick.  It costs about
+#:   320 MB more resident memory per node process that imports numba (see above).
 RT_DEFAULTS = RealtimeSettings(thread_priority=40, cpu_affinity=(), lock_memory=True)
 
 
@@ -195,6 +201,13 @@ def _thread_ids() -> list[int]:
         return [0]
 
 
+def _own_tid() -> int:
+    try:
+        return int(os.readlink('/proc/thread-self').rsplit('/', 1)[1])
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
 def _for_threads(fn, threads: str) -> tuple[int, int, OSError | None]:
     """Call ``fn(tid)`` for the calling thread and then (``threads='all'``) every thread of the
     process, again for threads that appeared meanwhile.  Returns (applied, refused, first
@@ -214,6 +227,7 @@ def _for_threads(fn, threads: str) -> tuple[int, int, OSError | None]:
                 refused += 1
                 first = first or e
             done.add(tid)
+        done.add(_own_tid())
         if threads != 'all':
             break
         pending = [t for t in _thread_ids() if t not in done]
@@ -384,10 +398,11 @@ class GcPauses:
 
     The ``gc.callbacks`` hook stores the pause in a preallocated ring of the last ``capacity``
     pauses (for the percentiles) and updates per-generation count, total and maximum (exact
-    over all pauses); it allocates nothing but the int it stores.
+    over all pauses); it allocates nothing but the int it stores.  :meth:`stats` sorts the
+    ring (4096 entries by default: well under a millisecond).
     """
 
-    def __init__(self, capacity: int = 100_000):
+    def __init__(self, capacity: int = 4096):
         if capacity < 1:
             raise ValueError(f'capacity must be positive, got {capacity}')
         self.capacity = int(capacity)
