@@ -134,8 +134,10 @@ class GraphConfig:
         GraphConfigError
             For an unknown node, parameter or event target (see the class docstring).
         """
-        from eha_ros.physics import get_scenario
-        from eha_ros.physics.events import format_event, Event
+        from eha_ros.physics import get_scenario, ParameterError
+        from eha_ros.physics.events import (CONTROLLER_RUNTIME, EventSchedule, format_event,
+                                            PLANT_RUNTIME)
+        allowed = {'servovalve_plant': PLANT_RUNTIME, 'controller': CONTROLLER_RUNTIME}
         sim = self.mode == 'lockstep'
         common = {'mode': self.mode, 'rate_hz': float(self.rate_hz)}
         sc = get_scenario(self.scenario)
@@ -154,7 +156,11 @@ class GraphConfig:
             if node not in EVENT_NODES:
                 raise GraphConfigError(f'event at {t_s} s: node {node!r} takes no events '
                                        f'(nodes with events: {", ".join(EVENT_NODES)})')
-            events.setdefault(node, []).append(format_event(Event(t_s, changes)))
+            try:
+                ev, = EventSchedule([(t_s, changes)], allowed=allowed[node])
+            except (ParameterError, TypeError, ValueError) as exc:
+                raise GraphConfigError(f'{node}: {exc}') from None
+            events.setdefault(node, []).append(format_event(ev))
         out = {
             'command_generator': dict(common, scenario=self.scenario, use_sim_time=sim),
             'controller': dict(common, params_file=self.params_file, use_sim_time=sim),
@@ -473,7 +479,8 @@ def _missing_ticks(config, state_ns, command_ns, servo_ns) -> dict:
 
 def run_graph(config: GraphConfig | None = None, processes: bool = True, env: dict | None = None,
               timeout_s: float = 300.0, log_dir: str | None = None, stop=None,
-              on_start=None, delays: dict | None = None) -> GraphResult:
+              on_start=None, delays: dict | None = None,
+              delay_after_start: bool = False) -> GraphResult:
     """Run ``config`` until the plant has simulated its duration; see the module docstring.
 
     ``env`` (e.g. from :func:`eha_ros.isolation.ros_environment`) sets ``ROS_DOMAIN_ID`` and
@@ -482,7 +489,8 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
     is stopped as after a complete run.  ``on_start(pids)``: called once the nodes are started,
     with ``{name: pid}`` of the node processes.  ``delays``: ``{node: seconds}`` to launch a
     node (or the collector, :data:`COLLECTOR`) that long after the others, e.g. to test late
-    discovery.
+    discovery; with ``delay_after_start``, that long after the graph's start (seen by an
+    observer node), e.g. to show what a listener left out of the handshake misses.
 
     Raises
     ------
@@ -528,6 +536,23 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
         bindir = Path(sys.executable).parent
         pending = sorted(((delays.get(name, 0.0), name) for name in list(params) + [COLLECTOR]),
                          key=lambda x: x[0])
+        observer = None
+        if delay_after_start and delays:
+            from rclpy.node import Node
+
+            from eha_ros.nodes.handshake import Handshake
+            observer = Node(COLLECTOR + '_observer', context=context,
+                            start_parameter_services=False)
+            observer.handshake = Handshake(observer)
+            executor.add_node(observer)
+            nodes.append(observer)
+
+        def due(delay):
+            if observer is None:
+                return time.monotonic() - t0 >= delay
+            return (observer.handshake.started
+                    and time.monotonic_ns() >= observer.handshake.start_monotonic_ns()
+                    + delay * 1e9)
 
         def launch(name):
             nonlocal collector
@@ -560,7 +585,7 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
             if collector is not None:
                 collector.poll()
             now = time.monotonic()
-            while pending and now - t0 >= pending[0][0]:
+            while pending and due(pending[0][0]):
                 launch(pending.pop(0)[1])
             if stop is not None and stop():
                 interrupted = True

@@ -332,17 +332,25 @@ class ServovalvePlant(Node):
         if self.mode == 'lockstep':
             self._publish_tick()
             return
-        self._rt_anchor = start_mono
-        self._rt_next = 0
+        self._anchor(start_mono)
         at_start(self, start_mono, self._begin_realtime)
+
+    def _anchor(self, start_mono_ns: int) -> None:
+        """Realtime: tick k falls due at ``start_mono_ns`` plus k periods."""
+        self._rt_anchor = start_mono_ns
+        self._rt_next = 0
 
     def _begin_realtime(self) -> None:
         self.create_timer(self.period_ns * 1e-9, self._on_timer, clock=self._steady)
         self._on_timer()
 
     # realtime ----------------------------------------------------------------------------
+    def _now_ns(self) -> int:
+        """Wall-clock time [ns] that realtime ticks fall due on (the steady clock)."""
+        return self._steady.now().nanoseconds
+
     def _on_timer(self):
-        now = self._steady.now().nanoseconds
+        now = self._now_ns()
         began = time.monotonic_ns()
         try:
             self._catch_up(now)

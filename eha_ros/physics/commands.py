@@ -83,6 +83,7 @@ class Scenario:
     valve_test_flows_m3_s: tuple = ()
     preflight_check: bool = False
     description: str = ''
+    events: tuple = ()
 
     def __post_init__(self):
         where = f'scenario {self.name}'
@@ -117,6 +118,7 @@ class Scenario:
                 raise ParameterError(f'{where}: com_times_s must be finite and increasing')
         if not np.all(np.isfinite(np.asarray(self.valve_test_flows_m3_s, dtype=float))):
             raise ParameterError(f'{where}: valve_test_flows_m3_s must be finite')
+        object.__setattr__(self, 'events', _scenario_events(where, self.events))
 
     @property
     def valve_test(self) -> bool:
@@ -155,6 +157,39 @@ _FIELDS = {f.name for f in dataclasses.fields(Scenario)} - {'name'}
 _TUPLES = ('com_times_s', 'com_values_m', 'valve_test_flows_m3_s')
 
 
+#: Nodes a scenario's events go to, and the parameters each may change while running.
+def _event_nodes() -> dict:
+    from .events import CONTROLLER_RUNTIME, PLANT_RUNTIME
+    return {'servovalve_plant': PLANT_RUNTIME, 'controller': CONTROLLER_RUNTIME}
+
+
+def _scenario_events(where: str, events) -> tuple:
+    """A scenario's ``events``: ``({t_s, node, set: {name: value}}, ...)`` or ``(t_s, node,
+    {name: value})`` tuples -> ``((t_s, node, ((name, value), ...)), ...)``, checked."""
+    from .events import EventSchedule
+    nodes = _event_nodes()
+    out = []
+    for item in events or ():
+        if isinstance(item, dict):
+            unknown = sorted(set(item) - {'t_s', 'node', 'set'})
+            if unknown or not {'t_s', 'node', 'set'} <= set(item):
+                raise ParameterError(f'{where}: each event needs t_s, node and set (got '
+                                     f'{", ".join(sorted(item))})')
+            item = (item['t_s'], item['node'], item['set'])
+        try:
+            t_s, node, changes = item
+            changes = dict(changes)
+        except (TypeError, ValueError):
+            raise ParameterError(f'{where}: event {item!r} is not (t_s, node, '
+                                 '{name: value})') from None
+        if node not in nodes:
+            raise ParameterError(f'{where}: event node {node!r} must be one of '
+                                 f'{", ".join(nodes)}')
+        ev = next(iter(EventSchedule([(t_s, changes)], allowed=nodes[node])))
+        out.append((ev.t_s, str(node), ev.changes))
+    return tuple(out)
+
+
 def load_scenarios(path: Path | str | None = None) -> dict[str, Scenario]:
     """All scenarios of ``config/scenarios.yaml`` (or ``path``) by name."""
     path = Path(path) if path is not None else config_dir() / 'scenarios.yaml'
@@ -182,7 +217,7 @@ def load_scenarios(path: Path | str | None = None) -> dict[str, Scenario]:
                 raise ParameterError(f'{path}: scenario {name}: preflight_check must be true or '
                                      'false')
         for key, value in list(kw.items()):
-            if key not in ('waveform', 'description', 'preflight_check') + _TUPLES:
+            if key not in ('waveform', 'description', 'preflight_check', 'events') + _TUPLES:
                 try:
                     kw[key] = float(value)
                 except (TypeError, ValueError):

@@ -579,7 +579,8 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
         (``family = 'dynamic'``), the metering-edge flows only (see ``_run``); the
         high-fidelity block when ``None``.
     events : optional
-        Parameter changes during the run: an :class:`~.events.EventSchedule` or what one is
+        Parameter changes during the run, after the scenario's own events: an
+        :class:`~.events.EventSchedule` or what one is
         built from (events, ``(t_s, {name: value})`` pairs, ``'T:name=value'`` texts) of the
         parameters in ``PLANT_RUNTIME`` and ``CONTROLLER_RUNTIME``.  Each takes effect at the
         first controller tick whose time is at least ``t_s``, before that tick's controller
@@ -607,7 +608,10 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     else:
         rec_every = max(1, int(round(record_dt_s / period)))
     # the run in segments of constant parameters: tick -> (parameters, fluid data) from it on
-    schedule = EventSchedule(events or (), period_ns=steps_per_tick * dt_ns)
+    if isinstance(events, EventSchedule):
+        events = list(events)
+    schedule = EventSchedule([(t, dict(changes)) for t, _, changes in sc.events]
+                             + list(events or ()), period_ns=steps_per_tick * dt_ns)
     segments = {0: (p, fluid_data)}
     applied = []
     for ev, q in zip(schedule, schedule.validate(p)):

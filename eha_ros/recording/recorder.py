@@ -203,6 +203,8 @@ class Recorder(Node):
         value = {name: self.declare_parameter(
             name, default, ParameterDescriptor(description=text)).value
             for name, (default, text) in RECORDER_PARAMETERS.items()}
+        from eha_ros.nodes.common import refuse_undeclared
+        refuse_undeclared(self)  # before any file is created
         self.output = value['output'] or default_output()
         namespace = value['namespace']
         requested = value['topics']
@@ -499,9 +501,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     node = None
     try:
         try:
-            from eha_ros.nodes.common import refuse_undeclared
             node = Recorder(parameter_overrides=overrides)
-            refuse_undeclared(node)
         except (RecorderError, ParameterException, ValueError, FileExistsError) as exc:
             print(f'recorder: error: {" ".join(str(exc).split())}', file=sys.stderr)
             return 2
