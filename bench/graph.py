@@ -1,28 +1,36 @@
-"""Timing of the node graph (Fast DDS), each node its own process or all in one process.
+"""Timing of the node graph (Fast DDS), each node its own process or all in one process,
+without and with the real-time settings, optionally beside CPU-bound load.
 
 Prints one JSON object:
 
-* ``realtime_processes`` / ``realtime_one_process``: the plant's achieved tick rate, tick jitter
-  (state inter-arrival time at the collector minus the period: p50/p99/max of its absolute
-  value) and command->state latency (from the collector's receipt of a ``ServovalveCommand``
-  to its receipt of the next ``ActuatorState``: it includes the wait for the plant's next
-  tick, uniform in 0..1 period), the first second (discovery, JIT load) left out; the
-  controller's achieved rate; each node's own timing report from ``/diagnostics`` (ticks on
-  time, late, slipped, overruns); CPU per node in cores (processes: from ``/proc/<pid>/stat``
-  over the run after its first second; one process: each node's callback time per wall
-  second, and the whole process's CPU); the machine's load averages before and after
-  (``os.getloadavg``: others' work on the same cores shows there);
-* ``lockstep``: simulated seconds per wall second for hf and each shipped surrogate, between the
-  first and the last state (start-up reported separately).
+* ``realtime_<layout>`` and ``realtime_<layout>_rt`` (``--rt both``, the default: side by side
+  in one run, each case in a fresh process so that one case's SCHED_FIFO never leaks into the
+  next), all counted from the graph's synchronised start (the end of the start-up handshake;
+  discovery and JIT warm-up reported apart): per ticking node its own timing report from
+  ``/diagnostics`` (ticks, on time, late, slipped, period jitter p99 since the start, overruns,
+  GC collections and the longest pause); the states' inter-arrival jitter at the collector
+  (p50/p99/max of |interval - period|) and the command->state latency (from the collector's
+  receipt of a ``ServovalveCommand`` to its receipt of the next ``ActuatorState``: it includes
+  the wait for the plant's next tick, uniform in 0..1 period), both on the middleware's receipt
+  times; whether every message arrived; CPU per node in cores; the load averages before and
+  after (``os.getloadavg``: others' work on the same cores shows there);
+* ``lockstep_<layout>``: simulated seconds per wall second for hf and each shipped surrogate from
+  the synchronised start, re-sent ticks, start-up time.
+
+``--load N`` starts N CPU-bound processes (``while True: pass``) at normal priority before the
+realtime runs and stops them after: what a rig PC's other work does to the graph.
 
     python bench/graph.py [--realtime-s 10] [--lockstep-s 1.0] [--models hf,lut,ga,nn]
-                          [--layouts processes,one-process] [--health] [--record]
+                          [--layouts processes,one-process] [--rt off|on|both] [--load N]
+                          [--health] [--record]
 """
 
 import argparse
 import json
 import os
 from pathlib import Path
+import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -79,11 +87,11 @@ class _CpuSampler:
         return {n: round((self.last[n] - self.first[n]) / dt, 3) for n in self.pids}
 
 
-def realtime(seconds, processes, health=False, record=False):
+def realtime(seconds, processes, health=False, record=False, rt=False):
     cfg = GraphConfig(scenario='sine_0p1_5pi', mode='realtime', duration_s=seconds,
-                      health=health)
+                      health=health, rt=rt)
     load_before = os.getloadavg()
-    sampler = _CpuSampler()
+    sampler = _CpuSampler(skip_s=0.0)
     with tempfile.TemporaryDirectory() as tmp, ros_environment() as env:
         if record:
             cfg.record = str(Path(tmp) / 'run.mcap')
@@ -96,18 +104,15 @@ def realtime(seconds, processes, health=False, record=False):
             info = scan(cfg.record)
             recording = {'messages': info.message_counts, 'lost': info.lost_messages()}
     load_after = os.getloadavg()
+    # everything from the graph's synchronised start (the first state is tick 0)
     st = r.state['arrival_s']
     sv = r.servovalve['arrival_s']
     period = 1.0 / cfg.rate_hz
-    skip = st[0] + 1.0
-    st_ss = st[st > skip]
-    jitter = np.abs(np.diff(st_ss) - period)
-    sv_ss = sv[sv > skip]
-    idx = np.searchsorted(st, sv_ss)
-    lat = st[idx[idx < st.size]] - sv_ss[idx < st.size]
+    jitter = np.abs(np.diff(st) - period)
+    idx = np.searchsorted(st, sv)
+    lat = st[idx[idx < st.size]] - sv[idx < st.size]
     timing = {name[:-len(TIMING_SUFFIX)]: {k: float(v) for k, v in d['values'].items()}
               for name, d in r.diagnostics.items() if name.endswith(TIMING_SUFFIX)}
-    plant = timing.get('servovalve_plant', {})
     cpu = sampler.cores()
     if processes:
         cpu['harness (collector)'] = round(own_cpu, 3)
@@ -115,18 +120,30 @@ def realtime(seconds, processes, health=False, record=False):
         cpu = {n: t.get('Busy (core)') for n, t in timing.items()}
         cpu['whole process (every node, collector, executor)'] = round(own_cpu, 3)
         cpu.update({n: c for n, c in sampler.cores().items()})  # the recorder, if any
-    out = {'wall_s': round(float(st[-1] - st[0]), 3), 'states': int(st.size),
-           'achieved_rate_hz': round(float((st_ss.size - 1) / (st_ss[-1] - st_ss[0])), 1),
+
+    def node(name):
+        t = timing.get(name, {})
+        return {'ticks': t.get('Events since startup'),
+                'on_time_pct': t.get('On time since startup (%)'),
+                'late': t.get('Late ticks since startup'),
+                'slipped': t.get('Slipped ticks since startup'),
+                'period_jitter_p99_ms': t.get('Period jitter p99 since startup (ms)'),
+                'overruns': t.get('Overruns since startup'),
+                'gc_collections': t.get('GC collections since startup'),
+                'gc_pause_max_ms': t.get('GC pause max (ms)'),
+                'discovery_s': t.get('Discovery (s)'), 'jit_warm_up_s': t.get('JIT warm-up (s)')}
+    out = {'rt': rt, 'wall_s': round(float(r.wall_s), 3), 'discovery_s': round(r.discovery_s, 2),
+           'states': int(st.size), 'data_complete': r.complete, 'data_loss': r.loss_report(),
+           'achieved_rate_hz': round(float((st.size - 1) / (st[-1] - st[0])), 1),
            'target_rate_hz': cfg.rate_hz,
-           'plant_ticks_on_time_pct': plant.get('On time since startup (%)'),
-           'plant_ticks': plant.get('Events since startup'),
-           'plant_late_ticks': plant.get('Late ticks since startup'),
-           'plant_slipped_ticks': plant.get('Slipped ticks since startup'),
-           'tick_jitter_p50_us': _us(jitter, 50), 'tick_jitter_p99_us': _us(jitter, 99),
-           'tick_jitter_max_us': round(float(jitter.max()) * 1e6, 1),
+           'plant': node('servovalve_plant'), 'controller': node('controller'),
+           'command_generator': node('command_generator'),
+           'state_interarrival_jitter_p50_us': _us(jitter, 50),
+           'state_interarrival_jitter_p99_us': _us(jitter, 99),
+           'state_interarrival_jitter_max_us': round(float(jitter.max()) * 1e6, 1),
            'command_to_state_latency_p50_us': _us(lat, 50),
            'command_to_state_latency_p99_us': _us(lat, 99),
-           'controller_rate_hz': round(float((sv_ss.size - 1) / (sv_ss[-1] - sv_ss[0])), 1),
+           'current_commands_per_state': round(float(sv.size / st.size), 4),
            'command_generator_messages_per_state': round(
                float(r.command['stamp_ns'].size / st.size), 3),
            'cpu_cores': cpu, 'cpu_cores_total': round(own_cpu + sum(sampler.cores().values()),
@@ -149,32 +166,83 @@ def lockstep(models, sim_s, processes):
         with ros_environment() as env:
             r = run_graph(GraphConfig(scenario='sine_0p1_5pi', model=model, duration_s=sim_s),
                           processes=processes, env=env, timeout_s=120)
-        a = r.state['arrival_s']
-        steady = a[-1] - a[0]
-        out[model] = {'sim_s': r.sim_s, 'ticks': int(a.size),
-                      'sim_s_per_wall_s': round(r.sim_s / steady, 3),
-                      'ticks_per_wall_s': round(a.size / steady, 1),
-                      'startup_wall_s': round(float(r.wall_s - steady), 2)}
+        timing = {name[:-len(TIMING_SUFFIX)]: d['values'] for name, d in r.diagnostics.items()
+                  if name.endswith(TIMING_SUFFIX)}
+        out[model] = {'sim_s': r.sim_s, 'ticks': int(r.state['tick'].size),
+                      'sim_s_per_wall_s': round(r.sim_s / r.wall_s, 3),
+                      'ticks_per_wall_s': round(r.state['tick'].size / r.wall_s, 1),
+                      'resent_ticks': r.resent_ticks, 'data_complete': r.complete,
+                      'startup_discovery_s': round(r.discovery_s, 2),
+                      'plant_resent': timing.get('servovalve_plant', {}).get(
+                          'Resent ticks since startup', '0')}
     return out
+
+
+class _Load:
+    """``n`` CPU-bound processes at normal priority beside the graph (a rig PC also runs a
+    recorder, a GUI, logging), stopped on exit."""
+
+    def __init__(self, n):
+        self.n = n
+        self.procs = []
+
+    def __enter__(self):
+        self.procs = [subprocess.Popen([sys.executable, '-c', 'while True: pass'])
+                      for _ in range(self.n)]
+        return self
+
+    def __exit__(self, *exc):
+        for p in self.procs:
+            p.kill()
+            p.wait()
+
+
+def _one_case(layout, rt, args) -> dict:
+    """One realtime measurement in a fresh process (real-time settings in one process apply to
+    the whole process: they must not leak into the next case)."""
+    cmd = [sys.executable, __file__, '--case', f'{layout}:{int(rt)}', '--realtime-s',
+           str(args.realtime_s)] + (['--health'] if args.health else []) + (
+        ['--record'] if args.record else [])
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    if out.returncode != 0:
+        return {'error': out.stderr.strip().splitlines()[-1] if out.stderr.strip() else
+                f'exit {out.returncode}'}
+    return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument('--realtime-s', type=float, default=10.0)
+    ap.add_argument('--realtime-s', type=float, default=10.0, help='0: no realtime runs')
     ap.add_argument('--lockstep-s', type=float, default=1.0, help='0: no lockstep runs')
     ap.add_argument('--models', default='hf,lut,ga,nn')
     ap.add_argument('--layouts', default='processes,one-process')
     ap.add_argument('--health', action='store_true', help='realtime with the health monitor')
     ap.add_argument('--record', action='store_true', help='realtime with the recorder')
+    ap.add_argument('--load', type=int, default=0, metavar='N',
+                    help='N CPU-bound processes at normal priority beside the realtime runs')
+    ap.add_argument('--rt', choices=('off', 'on', 'both'), default='both',
+                    help='realtime runs without and/or with the real-time settings (--rt)')
+    ap.add_argument('--case', help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.case:  # one realtime measurement (a child of the run below)
+        layout, rt = args.case.split(':')
+        print(json.dumps(realtime(args.realtime_s, layout == 'processes', args.health,
+                                  args.record, rt == '1')))
+        return
     models = args.models.split(',')
-    out = {'benchmark': 'graph'}
-    for layout in args.layouts.split(','):
-        key = layout.replace('-', '_')
-        out[f'realtime_{key}'] = realtime(args.realtime_s, layout == 'processes', args.health,
-                                          args.record)
-        if args.lockstep_s > 0:
-            out[f'lockstep_{key}'] = lockstep(models, args.lockstep_s, layout == 'processes')
+    out = {'benchmark': 'graph', 'load_processes': args.load, 'realtime_s': args.realtime_s}
+    rts = {'off': [False], 'on': [True], 'both': [False, True]}[args.rt]
+    layouts = args.layouts.split(',')
+    if args.realtime_s > 0:
+        with _Load(args.load):
+            for layout in layouts:
+                for rt in rts:
+                    key = 'realtime_' + layout.replace('-', '_') + ('_rt' if rt else '')
+                    out[key] = _one_case(layout, rt, args)
+    if args.lockstep_s > 0:
+        for layout in layouts:
+            out['lockstep_' + layout.replace('-', '_')] = lockstep(models, args.lockstep_s,
+                                                                   layout == 'processes')
     print(json.dumps(out))
 
 

@@ -200,12 +200,35 @@ def test_ctrl_c_stops_every_node_and_keeps_the_recording(ros_env, tmp_path):
             assert float(values[key]) >= 0, (node, key)
 
 
-def test_a_failing_node_gives_a_non_zero_exit(ros_env, tmp_path):
+def test_a_refused_value_exits_2_naming_it(ros_env, tmp_path):
+    """A non-physical value reaches the plant, which refuses it at start: one line naming the
+    node and the parameter, exit 2 (bad input), as for a name no node declares."""
     out = _run(['--processes', '--duration', '0.05',
                 '--set', 'servovalve_plant.radial_clearance_m=0.0'], ros_env, tmp_path)
-    assert out.returncode == 1
+    assert out.returncode == 2
     line = _one_line_error(out.stderr)
     assert 'servovalve_plant' in line and 'radial_clearance_m' in line
+
+
+def test_a_failing_node_gives_a_non_zero_exit(ros_env, tmp_path):
+    """A node that dies during the run (the controller, killed once the graph runs): exit 1,
+    one line naming it."""
+    proc = subprocess.Popen([str(BIN / 'eha-graph'), '--processes', '--mode', 'realtime',
+                             '--duration', '60'], env=ros_env, cwd=tmp_path, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        line = proc.stderr.readline()
+        assert 'controller (pid' in line, line
+        pid = int(line.split('controller (pid ')[1].split(')')[0])
+        os.kill(pid, signal.SIGKILL)
+        _, err = proc.communicate(timeout=TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 1
+    line = _one_line_error(line + err)
+    assert 'controller' in line and 'exited' in line
 
 
 @pytest.mark.parametrize('args, words', [

@@ -6,6 +6,7 @@ Every test that starts nodes runs in its own ROS domain with a temporary log fol
 
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -203,6 +204,9 @@ def test_realtime_controller_trigger(ros_env, trigger, per_state):
     try:
         node = Controller(context=ctx, parameter_overrides=[
             Parameter('mode', value='realtime'), Parameter('trigger', value=trigger)])
+        own = [t for t in node.timers if t is not node.handshake._timer]
+        assert own == []  # no clock of its own before the graph's start
+        node.handshake._begin(time.time_ns(), 'realtime')  # the start (already passed)
         sent = []
         node.pub.publish = sent.append
         node._on_command(ActuatorCommand(position_setpoint_m=1e-4))
@@ -212,7 +216,8 @@ def test_realtime_controller_trigger(ros_env, trigger, per_state):
         if per_state:
             kp = node.params.kp_a_m
             assert sent[-1].current_command_a == pytest.approx(kp * (1e-4 - 2e-5))
-        assert len([t for t in node.timers if t is not node.timing.timer]) == 1 - per_state
+        assert len([t for t in node.timers if t not in (node.timing.timer,
+                                                        node.handshake._timer)]) == 1 - per_state
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)

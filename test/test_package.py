@@ -13,7 +13,8 @@ PREFIX = Path(sys.prefix)
 LIBRARIES = [f'libeha_ros__rosidl_{kind}.so' for kind in (
     'generator_c', 'generator_py', 'typesupport_c', 'typesupport_fastrtps_c',
     'typesupport_introspection_c')]
-MESSAGES = ('ActuatorCommand', 'ActuatorState', 'HealthStatus', 'ServovalveCommand')
+MESSAGES = ('ActuatorCommand', 'ActuatorState', 'GraphEvent', 'HealthStatus',
+            'ServovalveCommand')
 
 
 def test_tests_use_the_installed_package():

@@ -476,7 +476,9 @@ def test_recorder_records_every_graph_topic(ros_env, tmp_path):
         with ros_node('recording_test_publisher') as (node, _):
             # Keep every sample until acknowledged: the test is about the recorder.
             qos = QoSProfile(depth=n, reliability=ReliabilityPolicy.RELIABLE)
-            pubs = {t: node.create_publisher(graph.message_class(ty), t, qos)
+            pubs = {t: node.create_publisher(graph.message_class(ty), t,
+                                             graph.topic_qos(t, depth=n)
+                                             if t in graph.LATCHED_TOPICS else qos)
                     for t, ty in graph.TOPICS.items()}
             _wait_matched(pubs.values())
             for i in range(n):
@@ -876,7 +878,8 @@ def test_recorder_topic_patterns(ros_env, tmp_path):
     _wait_for_line(recorder, 'topics to')
     _, err = _stop(recorder)
     assert recorder.returncode == 0, err
-    assert set(scan(output, strict=True).channels) == {graph.TOPIC_STATE, graph.TOPIC_HEALTH}
+    assert set(scan(output, strict=True).channels) == {graph.TOPIC_STATE, graph.TOPIC_HEALTH,
+                                                       graph.TOPIC_EVENTS}
     bad = subprocess.run([str(BIN / 'recorder'), '-o', str(tmp_path / 'x.mcap'),
                           '--regex', '^/nothing'], env=ros_env, cwd=tmp_path, text=True,
                          capture_output=True, timeout=PROCESS_TIMEOUT_S)

@@ -32,7 +32,7 @@ def test_package_messages_are_valid():
     msg_files = sorted((REPO / 'msg').glob('*.msg'))
     specs, dependencies = rosidl_build.validate_interfaces(msg_files, 'eha_ros', PREFIXES)
     assert [s.name for s in specs] == [
-        'ActuatorCommand', 'ActuatorState', 'HealthStatus', 'ServovalveCommand']
+        'ActuatorCommand', 'ActuatorState', 'GraphEvent', 'HealthStatus', 'ServovalveCommand']
     assert dependencies == ['builtin_interfaces', 'std_msgs']  # dependencies first
     state = {s.name: s for s in specs}['ActuatorState']
     assert len(state.fields) == 18
