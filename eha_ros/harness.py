@@ -20,6 +20,7 @@ ROS domain.
 
 from __future__ import annotations
 
+from array import array
 import dataclasses
 import os
 import signal
@@ -37,6 +38,7 @@ __all__ = ['GraphConfig', 'GraphResult', 'GraphError', 'GraphConfigError', 'Grap
 STATE_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_s',
                 'spool_position_m', 'flapper_position_m', 'p1_pa', 'p2_pa', 'p12_pa',
                 'load_flow_m3_s', 'coil_current_a', 'torque_motor_force_n', 'sim_time_s')
+_STATE_INTS = ('stamp_ns', 'tick', 'status', 'valve_test_point', 'valve_test_point_end')
 
 #: The harness's own node, which collects what the graph publishes.
 COLLECTOR = 'eha_harness_collector'
@@ -82,7 +84,9 @@ class GraphConfig:
     ``record``: an MCAP file the ``recorder`` node writes every graph topic to (it must not
     exist).  ``node_params``: ``{node: {parameter: value}}`` applied last, over what the fields
     above set (e.g. from a ROS params file, ``config/graph.yaml``).  ``rt``: the ticking nodes
-    get the real-time settings :data:`eha_ros.realtime.RT_DEFAULTS`.  The graph starts when
+    get the real-time settings :data:`eha_ros.realtime.RT_DEFAULTS`, the listeners (recorder,
+    health monitor, and the harness's own process for the run)
+    :data:`eha_ros.realtime.RT_LISTENER_DEFAULTS`.  The graph starts when
     every node's endpoints have matched (:mod:`eha_ros.nodes.handshake`), at most
     ``handshake_timeout_s`` after the nodes were started.
 
@@ -173,12 +177,6 @@ class GraphConfig:
         }
         for node, texts in events.items():
             out[node]['events'] = texts
-        if self.rt:
-            from eha_ros.realtime import RT_DEFAULTS
-            for node in TICKING_NODES:
-                out[node].update(thread_priority=int(RT_DEFAULTS.thread_priority),
-                                 cpu_affinity=[int(c) for c in RT_DEFAULTS.cpu_affinity]
-                                 or [-1], lock_memory=bool(RT_DEFAULTS.lock_memory))
         if self.health:
             out['health_monitor'] = dict(params_file=self.params_file, use_sim_time=sim,
                                          **self.health_params)
@@ -187,6 +185,13 @@ class GraphConfig:
                                    'monitor runs)')
         if self.record:
             out['recorder'] = dict(output=str(Path(self.record).resolve()))
+        if self.rt:
+            from eha_ros.realtime import RT_DEFAULTS, RT_LISTENER_DEFAULTS
+            for node in out:
+                rt = RT_DEFAULTS if node in TICKING_NODES else RT_LISTENER_DEFAULTS
+                out[node].update(thread_priority=int(rt.thread_priority),
+                                 cpu_affinity=[int(c) for c in rt.cpu_affinity] or [-1],
+                                 lock_memory=bool(rt.lock_memory))
         for node, values in self.node_params.items():
             if node not in out:
                 known = ', '.join(out)
@@ -220,7 +225,8 @@ def _check_declared(params: dict) -> None:
 @dataclasses.dataclass
 class GraphResult:
     """Arrays of what the collector received, in arrival order (``arrival_s``: the
-    middleware's receipt time of states and current commands, on the monotonic clock); ``health`` is a list of HealthStatus
+    middleware's receipt time of states and current commands, on the monotonic clock);
+    ``health`` is a list of HealthStatus
     messages; ``events``: every parameter change that took effect (``/eha/events``, as
     dicts).  ``wall_s`` runs from the graph's synchronised start to the last state;
     ``discovery_s`` from the nodes' launch to that start.  In lockstep, ticks the plant
@@ -326,21 +332,44 @@ class _Collector:
         self.node = Node(COLLECTOR, context=context, start_parameter_services=False)
         self.data_node = Node(COLLECTOR + '_data', context=context,
                               start_parameter_services=False)
-        self.states, self.commands, self.currents, self.health = [], [], [], []
-        self.state_arrival, self.current_arrival = [], []
+        # columns of plain numbers, not messages: a run's worth of messages kept as objects
+        # would make every full garbage collection of this process (the graph's own in one
+        # process) traverse them
+        self.state_cols = {f: array('d') for f in STATE_FIELDS + ('arrival_s',)}
+        self.state_cols.update({f: array('q') for f in _STATE_INTS})
+        self.command_cols = {'stamp_ns': array('q'), 'position_setpoint_m': array('d')}
+        self.current_cols = {'stamp_ns': array('q'), 'current_command_a': array('d'),
+                             'arrival_s': array('d')}
+        self.health = []
         self.events, self.diagnostics = [], {}
         self.counters = {}
         self.handshake = Handshake(self.node)
         self._subs = []
         self._last_poll = 0.0
 
+        cols = self.state_cols
+
         def on_state(msg, now):
-            self.state_arrival.append(now)
-            self.states.append(msg)
+            for f in STATE_FIELDS:
+                cols[f].append(getattr(msg, f))
+            cols['arrival_s'].append(now)
+            cols['stamp_ns'].append(msg.header.stamp.sec * 1_000_000_000
+                                    + msg.header.stamp.nanosec)
+            cols['tick'].append(msg.tick)
+            cols['status'].append(msg.status)
+            cols['valve_test_point'].append(msg.valve_test_point)
+            cols['valve_test_point_end'].append(int(msg.valve_test_point_end))
+
+        def on_command(msg, now):
+            self.command_cols['stamp_ns'].append(msg.header.stamp.sec * 1_000_000_000
+                                                 + msg.header.stamp.nanosec)
+            self.command_cols['position_setpoint_m'].append(msg.position_setpoint_m)
 
         def on_current(msg, now):
-            self.current_arrival.append(now)
-            self.currents.append(msg)
+            self.current_cols['stamp_ns'].append(msg.header.stamp.sec * 1_000_000_000
+                                                 + msg.header.stamp.nanosec)
+            self.current_cols['current_command_a'].append(msg.current_command_a)
+            self.current_cols['arrival_s'].append(now)
 
         def on_diagnostics(msg, now):
             for st in msg.status:
@@ -352,7 +381,7 @@ class _Collector:
         qos = graph_qos(QOS_DEPTH)
         for cls, topic, callback in (
                 (ActuatorState, TOPIC_STATE, on_state),
-                (ActuatorCommand, TOPIC_COMMAND, lambda m, _: self.commands.append(m)),
+                (ActuatorCommand, TOPIC_COMMAND, on_command),
                 (ServovalveCommand, TOPIC_SERVOVALVE, on_current),
                 (HealthStatus, TOPIC_HEALTH, lambda m, _: self.health.append(m)),
                 (DiagnosticArray, TOPIC_DIAGNOSTICS, on_diagnostics)):
@@ -399,57 +428,44 @@ class _Collector:
             'scheduled_time_s': float(msg.scheduled_time_s),
             'changes': dict(zip(msg.parameter_names, (float(v) for v in msg.parameter_values)))})
 
+    @property
+    def n_states(self) -> int:
+        return len(self.state_cols['tick'])
+
+    @property
+    def last_stamp_ns(self) -> int:
+        return self.state_cols['stamp_ns'][-1]
+
+    @property
+    def last_status(self) -> int:
+        return self.state_cols['status'][-1]
+
     def final_answers_in(self, config) -> bool:
         """Lockstep: the command and the current command of the last state's tick arrived."""
-        if not self.states:
+        if not self.n_states:
             return True
-        last = self.states[-1].header.stamp
-        key = (last.sec, last.nanosec)
-        return (any((m.header.stamp.sec, m.header.stamp.nanosec) == key
-                    for m in self.currents[-3:])
-                and any((m.header.stamp.sec, m.header.stamp.nanosec) == key
-                        for m in self.commands[-3:]))
+        last = self.last_stamp_ns
+        return (last in self.current_cols['stamp_ns'][-3:]
+                and last in self.command_cols['stamp_ns'][-3:])
 
     def result(self, config, wall, discovery_s):
-        def stamps(msgs):
-            return np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
-                             for m in msgs], dtype=np.int64)
-
-        def first_per_stamp(msgs, arrivals):
-            """In lockstep a tick the plant re-sends (and the controller's repeated answer)
-            carries the same content: keep the first of each stamp."""
-            if config.mode != 'lockstep':
-                return msgs, arrivals
-            seen, keep_m, keep_a = set(), [], []
-            for m, a in zip(msgs, arrivals):
-                key = (m.header.stamp.sec, m.header.stamp.nanosec)
-                if key not in seen:
-                    seen.add(key)
-                    keep_m.append(m)
-                    keep_a.append(a)
-            return keep_m, keep_a
+        def columns(cols):
+            """Arrays; in lockstep a tick the plant re-sent (and the controller's repeated
+            answer) carries the same content: the first of each stamp is kept."""
+            out = {k: np.frombuffer(v, dtype=np.float64 if v.typecode == 'd' else np.int64)
+                   .copy() if len(v) else np.zeros(0, np.float64 if v.typecode == 'd'
+                                                    else np.int64) for k, v in cols.items()}
+            if config.mode == 'lockstep' and out['stamp_ns'].size:
+                _, first = np.unique(out['stamp_ns'], return_index=True)
+                keep = np.sort(first)
+                out = {k: v[keep] for k, v in out.items()}
+            return out
         messages = {t: c.received for t, c in self.counters.items()}
-        resent = len(self.states)
-        self.states, self.state_arrival = first_per_stamp(self.states, self.state_arrival)
-        resent -= len(self.states)
-        self.currents, self.current_arrival = first_per_stamp(self.currents,
-                                                              self.current_arrival)
-        self.commands, _ = first_per_stamp(self.commands, [None] * len(self.commands))
-        state = {f: np.array([getattr(m, f) for m in self.states]) for f in STATE_FIELDS}
-        state['stamp_ns'] = stamps(self.states)
-        state['tick'] = np.array([m.tick for m in self.states], dtype=np.int64)
-        state['status'] = np.array([m.status for m in self.states], dtype=np.int64)
-        state['valve_test_point'] = np.array([m.valve_test_point for m in self.states],
-                                             dtype=np.int64)
-        state['valve_test_point_end'] = np.array([m.valve_test_point_end for m in self.states],
-                                                 dtype=bool)
-        state['arrival_s'] = np.array(self.state_arrival)
-        command = {'stamp_ns': stamps(self.commands),
-                   'position_setpoint_m': np.array([m.position_setpoint_m
-                                                    for m in self.commands])}
-        servo = {'stamp_ns': stamps(self.currents),
-                 'current_command_a': np.array([m.current_command_a for m in self.currents]),
-                 'arrival_s': np.array(self.current_arrival)}
+        state = columns(self.state_cols)
+        state['valve_test_point_end'] = state['valve_test_point_end'].astype(bool)
+        resent = self.n_states - state['tick'].size
+        command = columns(self.command_cols)
+        servo = columns(self.current_cols)
         missing = _missing_ticks(config, state['stamp_ns'], command['stamp_ns'],
                                  servo['stamp_ns'])
         return GraphResult(state, command, servo, list(self.health), wall, config, resent,
@@ -532,6 +548,10 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
         rclpy.init(context=context, domain_id=domain,
                    signal_handler_options=SignalHandlerOptions.NO)
         executor = make_executor(context)
+        if config.rt:  # the collector: a listener that other work must not starve
+            from eha_ros.realtime import apply_realtime, RT_LISTENER_DEFAULTS
+            for line in apply_realtime(RT_LISTENER_DEFAULTS):
+                print(f'{COLLECTOR}: warning: {line}', file=sys.stderr)
         t0 = time.monotonic()
         bindir = Path(sys.executable).parent
         pending = sorted(((delays.get(name, 0.0), name) for name in list(params) + [COLLECTOR]),
@@ -590,11 +610,10 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
             if stop is not None and stop():
                 interrupted = True
                 break
-            states = collector.states if collector is not None else []
-            if states and (states[-1].header.stamp.sec * 1_000_000_000
-                           + states[-1].header.stamp.nanosec) >= duration_ns:
+            n_states = collector.n_states if collector is not None else 0
+            if n_states and collector.last_stamp_ns >= duration_ns:
                 break
-            if states and states[-1].status == STATUS_DIVERGED:
+            if n_states and collector.last_status == STATUS_DIVERGED:
                 break  # diverged: the plant has stopped
             fatal = next((n.fatal for n in nodes if getattr(n, 'fatal', None)), None)
             if fatal:
@@ -615,15 +634,16 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
                                else 'the collector was never created')
                     raise GraphError(f'start-up handshake incomplete after '
                                      f'{now - t0:.0f} s: {problem} (logs in {log_dir})')
-            elif len(states) != last_count:
-                last_count, last_progress = len(states), now
+            elif n_states != last_count:
+                last_count, last_progress = n_states, now
             elif now - last_progress > timeout_s:
                 raise GraphError(f'no plant state for {timeout_s:g} s (after {last_count} '
                                  f'states): the graph stalled (logs in {log_dir})')
         _drain(executor, collector, config, nodes)
         start_mono = (collector.handshake.start_monotonic_ns() * 1e-9
                       if collector.handshake.started else t0)
-        last = collector.state_arrival[-1] if collector.state_arrival else time.monotonic()
+        arrivals = collector.state_cols['arrival_s']
+        last = arrivals[-1] if len(arrivals) else time.monotonic()
         result = collector.result(config, max(0.0, last - start_mono), max(0.0, start_mono - t0))
         result.interrupted = interrupted
     finally:
@@ -657,6 +677,9 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
         if executor is not None:
             executor.shutdown()
         rclpy.try_shutdown(context=context)
+        if config.rt:
+            from eha_ros.realtime import normal_scheduling
+            normal_scheduling()
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)

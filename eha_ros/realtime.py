@@ -71,8 +71,8 @@ import resource
 import time
 from dataclasses import dataclass
 
-__all__ = ['RealtimeSettings', 'RT_DEFAULTS', 'apply_realtime', 'current_realtime', 'settle_gc',
-           'GcPauses']
+__all__ = ['RealtimeSettings', 'RT_DEFAULTS', 'RT_LISTENER_DEFAULTS', 'apply_realtime',
+           'current_realtime', 'normal_scheduling', 'settle_gc', 'GcPauses']
 
 _MAX_FIFO_PRIORITY = 99
 _CAP_IPC_LOCK = 14
@@ -143,6 +143,23 @@ class RealtimeSettings:
 #:   new heap page, a code page evicted under memory pressure) inside a tick.  It costs about
 #:   320 MB more resident memory per node process that imports numba (see above).
 RT_DEFAULTS = RealtimeSettings(thread_priority=40, cpu_affinity=(), lock_memory=True)
+
+#: What ``--rt`` gives the graph's listeners (the harness's collector, the recorder, the health
+#: monitor): SCHED_FIFO below the ticking nodes, so the loop always preempts them, but above
+#: every normal process, so other work on the machine cannot starve them into losing messages
+#: (a listener's history holds one second at 1 kHz).
+RT_LISTENER_DEFAULTS = RealtimeSettings(thread_priority=30, cpu_affinity=(), lock_memory=True)
+
+
+def normal_scheduling() -> None:
+    """Every thread of the process back to normal scheduling (``SCHED_OTHER``), memory
+    unlocked: undoes :func:`apply_realtime` where the process outlives its real-time part."""
+    for tid in _thread_ids():
+        try:
+            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+        except OSError:
+            pass
+    _libc().munlockall()
 
 
 # --- applying ---------------------------------------------------------------------------------

@@ -44,8 +44,9 @@ from eha_ros.physics import ParameterError, load_params
 from eha_ros.surrogates.health import HealthThresholds, InServiceEstimator
 from eha_ros.surrogates.monitor import ITEM_UNITS, ITEMS, MonitorCore
 
-from .common import (TOPIC_DIAGNOSTICS, TOPIC_HEALTH, TOPIC_STATE, advertise, declare,
-                     ns_to_stamp, run_node, stamp_to_ns, subscribe, validator)
+from .common import (advertise, apply_realtime_settings, declare, declare_realtime,
+                     ns_to_stamp, run_node, stamp_to_ns, subscribe, TOPIC_DIAGNOSTICS,
+                     TOPIC_HEALTH, TOPIC_STATE, validator)
 from .handshake import Handshake
 
 _LEVEL_BYTES = {LEVEL_OK: DiagnosticStatus.OK, LEVEL_WARN: DiagnosticStatus.WARN,
@@ -105,6 +106,7 @@ class HealthMonitor(Node):
                            3600.0)
         self.hardware_id = declare(self, 'hardware_id', 'eha/servovalve', 'hardware_id of the '
                                    'DiagnosticStatus messages (the monitored unit)')
+        realtime = declare_realtime(self)
         self.params = load_params(path or None)
         self.limits = HealthThresholds.load(limits or None)
         stale = declare(self, 'stale_after_s', float(self.limits.stale_after_s), 'wall time '
@@ -140,6 +142,7 @@ class HealthMonitor(Node):
             self.handshake.watch(entity, topic)
         self.create_timer(0.5, self._check_stale,
                           clock=RosClock(clock_type=ClockType.STEADY_TIME))
+        apply_realtime_settings(self, realtime)
 
     @property
     def scheduled(self) -> int:
@@ -160,7 +163,8 @@ class HealthMonitor(Node):
             self.core.in_service.estimate(xs, np.zeros(12), np.zeros(12))
 
     def _on_set(self, changes):
-        frozen = {'params_file', 'thresholds_file', 'model'} & set(changes)
+        frozen = {'params_file', 'thresholds_file', 'model', 'thread_priority', 'cpu_affinity',
+                  'lock_memory'} & set(changes)
         if frozen:
             raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
         if 'window_s' in changes:

@@ -47,6 +47,9 @@ Parameters (``--ros-args -p name:=value``; the command-line options override the
 ``max_bag_size_b``   split by size, bytes (0: no split)                           0
 ``max_bag_duration_s`` split by duration, s (0: no split)                         0.0
 ``snapshot_s``       snapshot mode: seconds kept in memory (0: record all)        0.0
+``thread_priority``  SCHED_FIFO priority of every thread (0: normal)             0
+``cpu_affinity``     CPUs to pin to (``[-1]``: no pinning)                       ``[-1]``
+``lock_memory``      lock the process memory (``mlockall``)                      false
 ===================  ==========================================================  ===========
 
 Exit status: 0 after a clean stop, 2 on a usage error (unknown topic, existing output, bad
@@ -108,6 +111,10 @@ RECORDER_PARAMETERS = {
                                 '(0: no split by duration)'),
     'snapshot_s': (0.0, 'snapshot mode: keep the last snapshot_s [s] in memory and write them '
                         'on ~/snapshot or when /eha/health turns ERROR (0: record all)'),
+    'thread_priority': (0, 'SCHED_FIFO priority of every thread of the process (1-99; 0: '
+                           'normal scheduling), so other work cannot starve the recording'),
+    'cpu_affinity': ([-1], 'CPUs to pin every thread of the process to ([-1]: no pinning)'),
+    'lock_memory': (False, 'lock the process memory in RAM (mlockall)'),
 }
 
 
@@ -275,6 +282,17 @@ class Recorder(Node):
             health = next(t for t, ty in graph.topics_in(namespace).items()
                           if ty == graph.TOPICS[graph.TOPIC_HEALTH])
             self.create_subscription(HealthStatus, health, self._on_health, qos)
+        from eha_ros.realtime import apply_realtime, RealtimeSettings
+        try:
+            realtime = RealtimeSettings(
+                thread_priority=int(value['thread_priority']), lock_memory=bool(
+                    value['lock_memory']),
+                cpu_affinity=tuple(int(c) for c in value['cpu_affinity'] if int(c) >= 0))
+        except ValueError as exc:
+            raise RecorderError(str(exc)) from None
+        if realtime.thread_priority or realtime.cpu_affinity or realtime.lock_memory:
+            for line in apply_realtime(realtime):
+                self.get_logger().warning(line)
         what = (f'the last {self.snapshot_ns / 1e9:g} s of' if self.snapshot_ns else 'recording')
         self.get_logger().info(
             f'{what} {len(states)} topics to {path}: '
