@@ -187,10 +187,13 @@ class GraphConfig:
             out['recorder'] = dict(output=str(Path(self.record).resolve()))
         if self.rt:
             from eha_ros.realtime import RT_DEFAULTS, RT_LISTENER_DEFAULTS
+            plant_cpu, other_cpus = rt_cpus()
             for node in out:
                 rt = RT_DEFAULTS if node in TICKING_NODES else RT_LISTENER_DEFAULTS
+                cpus = (plant_cpu if node == 'servovalve_plant' else other_cpus
+                        if node in TICKING_NODES else ())
                 out[node].update(thread_priority=int(rt.thread_priority),
-                                 cpu_affinity=[int(c) for c in rt.cpu_affinity] or [-1],
+                                 cpu_affinity=list(cpus) or [-1],
                                  lock_memory=bool(rt.lock_memory))
         for node, values in self.node_params.items():
             if node not in out:
@@ -200,6 +203,18 @@ class GraphConfig:
             out[node].update(values)
         _check_declared(out)
         return out
+
+
+def rt_cpus() -> tuple:
+    """``--rt``'s CPU layout: ``(the plant's CPUs, the other ticking nodes')``. The plant - the
+    node whose lateness is the rig's - gets the last CPU this process may use to itself among
+    the ticking nodes; the command generator and the controller share the rest. The listeners
+    (collector, recorder, health monitor) are not pinned: below the ticking nodes' priority
+    they take the idle time of any CPU. On one CPU nobody is pinned."""
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        return (), ()
+    return (cpus[-1],), tuple(cpus[:-1])
 
 
 def declared_parameters() -> dict:
@@ -543,6 +558,7 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
     failure = None  # why a node failed, raised once everything is stopped
     interrupted = False
     os.environ.update({k: env[k] for k in saved if k in env})
+    cpus_before = os.sched_getaffinity(0)
     try:
         # no rclpy signal handlers: SIGINT reaches the caller (``stop``, KeyboardInterrupt)
         rclpy.init(context=context, domain_id=domain,
@@ -679,7 +695,7 @@ def run_graph(config: GraphConfig | None = None, processes: bool = True, env: di
         rclpy.try_shutdown(context=context)
         if config.rt:
             from eha_ros.realtime import normal_scheduling
-            normal_scheduling()
+            normal_scheduling(cpus_before)
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k, None)

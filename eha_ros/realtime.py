@@ -151,12 +151,15 @@ RT_DEFAULTS = RealtimeSettings(thread_priority=40, cpu_affinity=(), lock_memory=
 RT_LISTENER_DEFAULTS = RealtimeSettings(thread_priority=30, cpu_affinity=(), lock_memory=True)
 
 
-def normal_scheduling() -> None:
-    """Every thread of the process back to normal scheduling (``SCHED_OTHER``), memory
-    unlocked: undoes :func:`apply_realtime` where the process outlives its real-time part."""
+def normal_scheduling(cpus=None) -> None:
+    """Every thread of the process back to normal scheduling (``SCHED_OTHER``) on ``cpus``
+    (default: left as they are), memory unlocked: undoes :func:`apply_realtime` where the
+    process outlives its real-time part."""
     for tid in _thread_ids():
         try:
             os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+            if cpus:
+                os.sched_setaffinity(tid, cpus)
         except OSError:
             pass
     _libc().munlockall()

@@ -54,6 +54,7 @@ class CommandGenerator(Node):
         declare(self, 'mode', 'realtime', 'timing mode', choices=MODES)
         realtime = declare_realtime(self)
         self.scenario = self._build(self._values())
+        self.scenario.value(0.0)  # compile the command kernel now, not in the first tick
         self._check_mode(self.get_parameter('mode').value)
         self.add_on_set_parameters_callback(validator(self._on_set))
         self.pub = advertise(self, ActuatorCommand, TOPIC_COMMAND)

@@ -153,6 +153,7 @@ class ServovalvePlant(Node):
         self.diverged = False
         self.ticks = 0
         self.fatal = None
+        self._msg = None
         self.timing = TickTiming(self, rate, self.mode == 'realtime')
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self._steady = steady
@@ -265,11 +266,18 @@ class ServovalvePlant(Node):
         return initial_state(self.plant.params)
 
     def _state_msg(self) -> ActuatorState:
+        """The tick's state. One message object is filled every tick (publishing serializes
+        it at once): no allocation per tick beyond the numbers themselves."""
         s = self.plant.snapshot()
         p = self.plant.params
-        msg = ActuatorState()
+        msg = self._msg
+        if msg is None:
+            msg = self._msg = ActuatorState()
+            msg.header.frame_id = 'jack'
+            msg.model = self.model
         ns_to_stamp(msg.header.stamp, self.plant.time_ns)
-        msg.header.frame_id = 'jack'
+        msg.valve_test_point = 0
+        msg.valve_test_point_end = False
         msg.jack_position_m = s['jack_position_m']
         msg.jack_position_measured_m = s['jack_position_measured_m']
         msg.jack_velocity_m_s = s['jack_velocity_m_s']
@@ -283,7 +291,6 @@ class ServovalvePlant(Node):
         msg.torque_motor_force_n = s['torque_motor_force_n']
         msg.sim_time_s = self.plant.time_s
         msg.tick = self.plant.steps
-        msg.model = self.model
         st = self.plant.state
         t = self.test_sample
         if t is not None:
