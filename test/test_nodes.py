@@ -190,6 +190,47 @@ def test_realtime_plant_locks_simulated_time_to_the_wall_clock(ros_env):
         rclpy.try_shutdown(context=ctx)
 
 
+def test_realtime_command_generator_publishes_every_sample_on_the_tick_grid(ros_env):
+    """Realtime command generator, driven by a wall clock the test sets: sample k is the
+    scenario's value at k periods, stamped with the start plus k periods; a late timer call
+    publishes every sample that fell due, a stall beyond ``max_catch_up`` slips (counted)."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from eha_ros.nodes.command_generator import CommandGenerator
+    from eha_ros.physics import get_scenario
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+    try:
+        node = CommandGenerator(context=ctx, parameter_overrides=[
+            Parameter('mode', value='realtime'), Parameter('scenario', value='sine_0p1_10pi'),
+            Parameter('max_catch_up', value=20)])
+        sent = []
+        node.pub.publish = lambda m: sent.append(
+            (m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec,
+             m.position_setpoint_m))
+        wall, ms, start_ns = [5_000_000_000], 1_000_000, 1_700_000_000_000_000_000
+        node._now_ns = lambda: wall[0]
+        node._t0_ns = start_ns
+        node._anchor(wall[0])
+
+        def call(dt_ns):
+            wall[0] += dt_ns
+            n = len(sent)
+            node._on_timer()
+            return sent[n:]
+        assert len(call(0)) == 1 and len(call(ms // 2)) == 0
+        assert len(call(7 * ms + ms // 2)) == 8             # 8 ms late: every sample sent
+        assert len(call(100 * ms)) == 20 and node.slipped_ticks == 80
+        k = np.array([0, *range(1, 9)])
+        sine = get_scenario('sine_0p1_10pi')
+        assert [s for s, _ in sent[:9]] == [start_ns + int(i) * ms for i in k]
+        assert [v for _, v in sent[:9]] == [sine.value(i * ms * 1e-9) for i in k]
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
 @pytest.mark.parametrize('trigger, per_state', [('state', 1), ('timer', 0)])
 def test_realtime_controller_trigger(ros_env, trigger, per_state):
     """Realtime controller: by default every plant state clocks one control step (current from

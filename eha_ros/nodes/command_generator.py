@@ -1,8 +1,11 @@
 """``command_generator``: publishes the jack position command (``ActuatorCommand``).
 
 Realtime mode: a wall-clock timer at ``rate_hz``, time counted from the graph's common start
-(the start-up handshake, :mod:`eha_ros.nodes.handshake`): the command of time t is published at
-the start plus t, as the plant's state of time t.
+(the start-up handshake, :mod:`eha_ros.nodes.handshake`): sample k, the command of time
+k/rate_hz, falls due at the start plus k periods, as the plant's state of that time, and is
+stamped with that wall-clock time. A late timer call publishes every sample that fell due (at
+most ``max_catch_up``; a longer stall slips, counted and logged), so the command sequence does
+not depend on the machine's load.
 Lockstep mode: one command per ``/clock`` tick published by the plant, stamped with that tick
 and evaluated at exactly its time.
 
@@ -52,6 +55,8 @@ class CommandGenerator(Node):
             declare(self, name, 0.0, text)
         declare(self, 'rate_hz', 1000.0, 'publication rate in realtime mode [Hz]', 1.0, 1e5)
         declare(self, 'mode', 'realtime', 'timing mode', choices=MODES)
+        self.max_catch_up = declare(self, 'max_catch_up', 50, 'realtime: most late samples '
+                                    'published at once; a longer stall slips', 1, 100000)
         realtime = declare_realtime(self)
         self.scenario = self._build(self._values())
         self.scenario.value(0.0)  # compile the command kernel now, not in the first tick
@@ -62,6 +67,7 @@ class CommandGenerator(Node):
         self.published = 0
         self.timing = TickTiming(self, self.get_parameter('rate_hz').value,
                                  self.mode == 'realtime')
+        self.period_ns = round(1e9 / self.get_parameter('rate_hz').value)
         self.handshake = Handshake(self, on_start=self._on_start)
         self.handshake.watch(self.pub, TOPIC_COMMAND)
         self.handshake.watch(self.timing.pub, TOPIC_DIAGNOSTICS)
@@ -78,10 +84,17 @@ class CommandGenerator(Node):
         begin_timing(self, self.timing, start_mono, self._warm_up_s)
         if self.mode == 'realtime':
             self._t0_ns = start_ns
+            self._anchor(start_mono)
             at_start(self, start_mono, self._begin_realtime)
 
+    def _anchor(self, start_mono_ns: int) -> None:
+        """Realtime: sample k falls due at ``start_mono_ns`` plus k periods."""
+        self._rt_anchor = start_mono_ns
+        self._rt_next = 0
+        self.slipped_ticks = 0
+
     def _begin_realtime(self) -> None:
-        self.create_timer(1.0 / self.get_parameter('rate_hz').value, self._on_timer)
+        self.create_timer(self.period_ns * 1e-9, self._on_timer)
         self._on_timer()
 
     def _values(self, changes=None) -> dict:
@@ -110,15 +123,19 @@ class CommandGenerator(Node):
             raise ParameterError('mode cannot change while running')
         if 'rate_hz' in changes and changes['rate_hz'] != self.get_parameter('rate_hz').value:
             raise ParameterError('rate_hz cannot change while running')
+        if 'max_catch_up' in changes:
+            self.max_catch_up = int(changes['max_catch_up'])
         if set(changes) & (set(_WAVE_PARAMS) | {'scenario', 'waveform'}):
             self.scenario = self._build(self._values(changes))
 
-    def _publish(self, t_ns: int, stamp=None):
+    def _publish(self, t_ns: int, stamp=None, stamp_ns=None):
+        """The command of scenario time ``t_ns``, stamped ``stamp`` (a message) or
+        ``stamp_ns`` (default: ``t_ns``)."""
         msg = ActuatorCommand()
         if stamp is not None:
             msg.header.stamp = stamp
         else:
-            ns_to_stamp(msg.header.stamp, t_ns)
+            ns_to_stamp(msg.header.stamp, t_ns if stamp_ns is None else stamp_ns)
         msg.header.frame_id = 'jack'
         msg.position_setpoint_m = float(self.scenario.value(t_ns * 1e-9))
         self.pub.publish(msg)
@@ -130,21 +147,30 @@ class CommandGenerator(Node):
         self.timing.tick(began)
         self.timing.busy(began)
 
-    def _on_timer(self):
-        began = time.monotonic_ns()
-        self.timing.on_schedule(began)
-        self._on_timer_publish()
-        self.timing.busy(began)
+    def _now_ns(self) -> int:
+        """Wall-clock time [ns] that samples fall due on (``time.monotonic_ns``)."""
+        return time.monotonic_ns()
 
-    def _on_timer_publish(self):
-        now = self.get_clock().now()
-        msg = ActuatorCommand()
-        msg.header.stamp = now.to_msg()
-        msg.header.frame_id = 'jack'
-        msg.position_setpoint_m = float(self.scenario.value((now.nanoseconds - self._t0_ns)
-                                                            * 1e-9))
-        self.pub.publish(msg)
-        self.published += 1
+    def _on_timer(self):
+        now = self._now_ns()
+        began = time.monotonic_ns()
+        due = (now - self._rt_anchor) // self.period_ns
+        behind = due - self._rt_next + 1
+        if behind > self.max_catch_up:
+            slip = behind - self.max_catch_up
+            self.slipped_ticks += slip
+            self.timing.slip(slip)
+            self._rt_next += slip
+            behind = self.max_catch_up
+            self.get_logger().warning(f'{slip} samples behind the wall clock: slipped '
+                                      f'({self.slipped_ticks} in all)',
+                                      throttle_duration_sec=1.0)
+        for _ in range(max(0, behind)):
+            k = self._rt_next
+            self._rt_next += 1
+            self._publish(k * self.period_ns, stamp_ns=self._t0_ns + k * self.period_ns)
+            self.timing.tick(now, now - (self._rt_anchor + k * self.period_ns))
+        self.timing.busy(began)
 
 
 def main(args=None) -> int:
