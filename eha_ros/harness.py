@@ -50,9 +50,6 @@ _GRACE_S = 3.0
 #: How long the harness waits, past the plant's own handshake timeout, for the start (s).
 _START_MARGIN_S = 15.0
 
-#: Nodes whose ``events`` parameter takes a schedule, and what each may change.
-EVENT_NODES = ('servovalve_plant', 'controller')
-
 #: Real-time settings ``GraphConfig.rt`` gives each ticking node.
 TICKING_NODES = ('command_generator', 'controller', 'servovalve_plant')
 
@@ -139,9 +136,7 @@ class GraphConfig:
             For an unknown node, parameter or event target (see the class docstring).
         """
         from eha_ros.physics import get_scenario, ParameterError
-        from eha_ros.physics.events import (CONTROLLER_RUNTIME, EventSchedule, format_event,
-                                            PLANT_RUNTIME)
-        allowed = {'servovalve_plant': PLANT_RUNTIME, 'controller': CONTROLLER_RUNTIME}
+        from eha_ros.physics.events import Event, format_event, node_events
         sim = self.mode == 'lockstep'
         common = {'mode': self.mode, 'rate_hz': float(self.rate_hz)}
         sc = get_scenario(self.scenario)
@@ -150,21 +145,13 @@ class GraphConfig:
                 if sc.valve_test else {})
         if sc.preflight_check:
             test['preflight_check'] = True
+        try:
+            checked = node_events('events', self.all_events())
+        except ParameterError as exc:
+            raise GraphConfigError(str(exc)) from None
         events = {}
-        for item in self.all_events():
-            try:
-                t_s, node, changes = item
-            except (TypeError, ValueError):
-                raise GraphConfigError(f'event {item!r}: expected (t_s, node, {{parameter: '
-                                       'value}})') from None
-            if node not in EVENT_NODES:
-                raise GraphConfigError(f'event at {t_s} s: node {node!r} takes no events '
-                                       f'(nodes with events: {", ".join(EVENT_NODES)})')
-            try:
-                ev, = EventSchedule([(t_s, changes)], allowed=allowed[node])
-            except (ParameterError, TypeError, ValueError) as exc:
-                raise GraphConfigError(f'{node}: {exc}') from None
-            events.setdefault(node, []).append(format_event(ev))
+        for t_s, node, changes in checked:
+            events.setdefault(node, []).append(format_event(Event(t_s, changes)))
         out = {
             'command_generator': dict(common, scenario=self.scenario, use_sim_time=sim),
             'controller': dict(common, params_file=self.params_file, use_sim_time=sim),

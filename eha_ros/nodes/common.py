@@ -25,7 +25,7 @@ __all__ = ['TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOPIC_HEALTH',
            'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'QOS', 'MODES', 'declare', 'declare_physics',
            'run_node', 'stamp_to_ns', 'ns_to_stamp', 'TickTiming', 'TIMING_SUFFIX',
            'refuse_undeclared', 'undeclared_message', 'declare_realtime',
-           'apply_realtime_settings', 'begin_timing', 'at_start']
+           'apply_realtime_settings', 'begin_timing', 'at_start', 'EventChannel']
 
 #: Every graph topic (names and QoS from :mod:`eha_ros.graph`): reliable, last 1000
 #: kept, volatile: a reader outside the loop (recorder, health monitor) may lag 1 s at 1 kHz.
@@ -337,6 +337,47 @@ class TickTiming:
         msg.header.stamp = self.node.get_clock().now().to_msg()
         msg.status = [st]
         self.pub.publish(msg)
+
+
+class EventChannel:
+    """A node's parameter changes on the latched ``/eha/events`` (``GraphEvent``): each one
+    that takes effect, scheduled or live, with the tick it took effect at; :meth:`mirror`
+    writes a scheduled change into the node's own parameters (``applying`` is true meanwhile,
+    so the node's set-parameters callback can tell it from a live set)."""
+
+    def __init__(self, node: Node, period_ns: int):
+        from eha_ros.graph import TOPIC_EVENTS, topic_qos
+        from eha_ros.msg import GraphEvent
+        self.node = node
+        self.period_ns = int(period_ns)
+        self.applying = False
+        self._cls = GraphEvent
+        self.pub = node.create_publisher(GraphEvent, TOPIC_EVENTS, topic_qos(TOPIC_EVENTS))
+
+    def publish(self, stamp_ns: int, source: str, scheduled_s: float, changes: dict) -> None:
+        """Publish that ``changes`` took effect at the tick stamped ``stamp_ns``."""
+        msg = self._cls()
+        ns_to_stamp(msg.header.stamp, stamp_ns)
+        msg.header.frame_id = 'jack'
+        msg.tick_index = stamp_ns // self.period_ns
+        msg.node = self.node.get_name()
+        msg.source = source
+        msg.scheduled_time_s = float(scheduled_s)
+        msg.parameter_names = list(changes)
+        msg.parameter_values = [float(v) for v in changes.values()]
+        self.pub.publish(msg)
+        self.node.get_logger().info(
+            f'{source} change at t = {stamp_ns * 1e-9:.6g} s (tick {msg.tick_index}): '
+            + ', '.join(f'{k}={float(v):g}' for k, v in changes.items()))
+
+    def mirror(self, changes: dict) -> None:
+        """Set the node's parameters to a scheduled change it has applied."""
+        from rclpy.parameter import Parameter
+        self.applying = True
+        try:
+            self.node.set_parameters([Parameter(k, value=float(v)) for k, v in changes.items()])
+        finally:
+            self.applying = False
 
 
 def begin_timing(node: Node, timing: TickTiming, start_mono_ns: int, warm_up_s: float) -> None:

@@ -27,15 +27,15 @@ import time
 
 from rclpy.node import Node
 
-from eha_ros.graph import TOPIC_DIAGNOSTICS, TOPIC_EVENTS, topic_qos
-from eha_ros.msg import ActuatorCommand, ActuatorState, GraphEvent, ServovalveCommand
+from eha_ros.graph import TOPIC_DIAGNOSTICS
+from eha_ros.msg import ActuatorCommand, ActuatorState, ServovalveCommand
 from eha_ros.physics import ParameterError, load_params
 from eha_ros.physics.events import CONTROLLER_RUNTIME, EventSchedule, parse_event
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import PositionController
 
 from .common import (advertise, apply_realtime_settings, at_start, begin_timing, declare,
-                     declare_physics, declare_realtime, MODES, ns_to_stamp, run_node,
+                     declare_physics, declare_realtime, EventChannel, MODES, run_node,
                      stamp_to_ns, subscribe, TickTiming, TOPIC_COMMAND, TOPIC_SERVOVALVE,
                      TOPIC_STATE, validator)
 from .handshake import Handshake
@@ -78,10 +78,8 @@ class Controller(Node):
         self.schedule.validate(self.params)
         self.pid = PositionController(self.params, self.period_s)
         PositionController(self.params, self.period_s).update(0.0, 0.0)  # JIT before tick 0
-        self._applying = False
+        self.events = EventChannel(self, self.period_ns)
         self.add_on_set_parameters_callback(validator(self._on_set))
-        self.events_pub = self.create_publisher(GraphEvent, TOPIC_EVENTS,
-                                                topic_qos(TOPIC_EVENTS))
         self._stamp_ns = 0  # the tick being served (its state's stamp)
         self.pub = advertise(self, ServovalveCommand, TOPIC_SERVOVALVE)
         command_sub = subscribe(self, ActuatorCommand, TOPIC_COMMAND, self._on_command)
@@ -118,39 +116,19 @@ class Controller(Node):
         if frozen:
             raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
         gains = {k: v for k, v in changes.items() if k in GAINS}
-        if gains and not self._applying:
+        if gains and not self.events.applying:
             self.params = self._params(gains)
             self.pid.params = self.params
-            self._publish_event('live', math.nan, gains)
-
-    def _publish_event(self, source: str, scheduled_s: float, changes: dict) -> None:
-        msg = GraphEvent()
-        ns_to_stamp(msg.header.stamp, self._stamp_ns)
-        msg.header.frame_id = 'jack'
-        msg.tick_index = self._stamp_ns // self.period_ns
-        msg.node = self.get_name()
-        msg.source = source
-        msg.scheduled_time_s = float(scheduled_s)
-        msg.parameter_names = list(changes)
-        msg.parameter_values = [float(v) for v in changes.values()]
-        self.events_pub.publish(msg)
-        self.get_logger().info(f'{source} change at tick {msg.tick_index}: ' + ', '.join(
-            f'{k}={float(v):g}' for k, v in changes.items()))
+            self.events.publish(self._stamp_ns, 'live', math.nan, gains)
 
     def _apply_due_events(self, t_ns: int) -> None:
         """Gain changes due at the tick stamped ``t_ns`` take effect before its update."""
-        from rclpy.parameter import Parameter
-        self._stamp_ns = t_ns
         for ev in self.schedule.due(t_ns):
             changes = ev.as_dict()
             self.params = replace(self.params, **changes)
             self.pid.params = self.params
-            self._publish_event('schedule', ev.t_s, changes)
-            self._applying = True
-            try:
-                self.set_parameters([Parameter(k, value=float(v)) for k, v in changes.items()])
-            finally:
-                self._applying = False
+            self.events.publish(t_ns, 'schedule', ev.t_s, changes)
+            self.events.mirror(changes)
 
     def _send(self, stamp, current_a):
         msg = ServovalveCommand()

@@ -4,8 +4,17 @@
 ``model`` selects the fluid-dynamic block: ``hf`` (the high-fidelity chambers and metering
 edges) or a surrogate shipped in ``eha_ros/surrogates/models``: the dynamic ones ``dlut``,
 ``dnn``, ``dga`` (metering-edge flows learned, chambers and jack physical: the recommended
-in-loop surrogates) or the reference's algebraic ``lut``, ``ga``, ``nn``, ``nn2``.  Between ticks the plant takes ``1/rate_hz / dt_s`` steps of ``dt_s`` (1 us) with the
-last coil-current command held.
+in-loop surrogates) or the reference's algebraic ``lut``, ``ga``, ``nn``, ``nn2``.  Between
+ticks the plant takes ``1/rate_hz / dt_s`` steps of ``dt_s`` (1 us) with the last coil-current
+command held.
+
+Start: the plant coordinates the start-up handshake (:mod:`.handshake`): its first tick waits
+until every endpoint of the nodes in ``handshake_nodes`` has matched its peers, and in realtime
+it publishes the common start time at which it and the other ticking nodes start their clocks.
+
+``events``: faults on the simulation clock (``'T:name=value'``), each applied at the first
+tick whose time is at least T, before that tick's steps, and published on ``/eha/events``
+with its tick, as is every live parameter set.
 
 Realtime mode: a wall-clock timer at ``rate_hz``; simulated time is locked to the wall clock:
 when a timer call comes late (a busy machine) the plant catches up the ticks that fell due, up
@@ -42,17 +51,18 @@ from rclpy.clock import ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
-from eha_ros.graph import MODELS, TOPIC_EVENTS, topic_qos
-from eha_ros.msg import ActuatorState, GraphEvent, ServovalveCommand
+from eha_ros.graph import MODELS
+from eha_ros.msg import ActuatorState, ServovalveCommand
 from eha_ros.physics import ParameterError, Plant, SimulationDiverged, load_params
 from eha_ros.physics.events import EventSchedule, parse_event, PLANT_RUNTIME
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import S_P1, S_P2, S_XJ
 from eha_ros.physics.valve_test import PreflightCheck, ValveTest
 
-from .common import (apply_realtime_settings, at_start, begin_timing, declare, declare_physics, declare_realtime, MODES,
-                     ns_to_stamp, run_node, stamp_to_ns, subscribe, TickTiming, TOPIC_CLOCK,
-                     TOPIC_SERVOVALVE, TOPIC_STATE, advertise, validator)
+from .common import (advertise, apply_realtime_settings, at_start, begin_timing, declare,
+                     declare_physics, declare_realtime, EventChannel, MODES, ns_to_stamp,
+                     run_node, stamp_to_ns, subscribe, TickTiming, TOPIC_CLOCK,
+                     TOPIC_SERVOVALVE, TOPIC_STATE, validator)
 from .handshake import StartCoordinator
 
 #: Flows [m^3/s] of the valve test by default: three of the diagnostic grid (DB4).
@@ -142,10 +152,8 @@ class ServovalvePlant(Node):
                           else None)
         self.preflight_tick = 0
         self.preflight_last = -1   # self.ticks of the last pre-flight tick
+        self.events = EventChannel(self, period_ns)
         self.add_on_set_parameters_callback(validator(self._on_set))
-        self._applying = False  # a scheduled event is being mirrored into the parameters
-        self.events_pub = self.create_publisher(GraphEvent, TOPIC_EVENTS,
-                                                topic_qos(TOPIC_EVENTS))
         self.state_pub = advertise(self, ActuatorState, TOPIC_STATE)
         command_sub = subscribe(self, ServovalveCommand, TOPIC_SERVOVALVE, self._on_command)
         self.current_a = 0.0
@@ -186,12 +194,12 @@ class ServovalvePlant(Node):
         if frozen:
             raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
         wear = {k: v for k, v in changes.items() if k in WEAR}
-        if wear and not self._applying:
+        if wear and not self.events.applying:
             params = replace(self.plant.params, **wear)  # raises with the reason if bad
             if self.fluid is not None:
                 self.fluid.check_params(params)
             self.plant.set_params(params)
-            self._publish_event('live', math.nan, wear)
+            self.events.publish(self.plant.time_ns, 'live', math.nan, wear)
         if 'duration_s' in changes:
             self.duration_s = float(changes['duration_s'])
         if 'max_catch_up' in changes:
@@ -199,35 +207,14 @@ class ServovalvePlant(Node):
         if 'resend_s' in changes:
             self.resend_s = float(changes['resend_s'])
 
-    def _publish_event(self, source: str, scheduled_s: float, changes: dict) -> None:
-        """Publish (latched) a parameter change that takes effect from the current tick."""
-        msg = GraphEvent()
-        ns_to_stamp(msg.header.stamp, self.plant.time_ns)
-        msg.header.frame_id = 'jack'
-        msg.tick_index = self.plant.time_ns // self.period_ns
-        msg.node = self.get_name()
-        msg.source = source
-        msg.scheduled_time_s = float(scheduled_s)
-        msg.parameter_names = list(changes)
-        msg.parameter_values = [float(v) for v in changes.values()]
-        self.events_pub.publish(msg)
-        self.get_logger().info(
-            f'{source} change at t = {self.plant.time_s:.6g} s (tick {msg.tick_index}): '
-            + ', '.join(f'{k}={float(v):g}' for k, v in changes.items()))
-
     def _apply_due_events(self) -> None:
         """Scheduled events due at this tick (time at least T) take effect before its steps;
         the node's parameters are updated to match."""
-        from rclpy.parameter import Parameter
         for ev in self.schedule.due(self.plant.time_ns):
             changes = ev.as_dict()
             self.plant.set_params(replace(self.plant.params, **changes))
-            self._publish_event('schedule', ev.t_s, changes)
-            self._applying = True
-            try:
-                self.set_parameters([Parameter(k, value=float(v)) for k, v in changes.items()])
-            finally:
-                self._applying = False
+            self.events.publish(self.plant.time_ns, 'schedule', ev.t_s, changes)
+            self.events.mirror(changes)
 
     # stepping ----------------------------------------------------------------------------
     def _advance(self):

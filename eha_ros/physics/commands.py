@@ -118,7 +118,8 @@ class Scenario:
                 raise ParameterError(f'{where}: com_times_s must be finite and increasing')
         if not np.all(np.isfinite(np.asarray(self.valve_test_flows_m3_s, dtype=float))):
             raise ParameterError(f'{where}: valve_test_flows_m3_s must be finite')
-        object.__setattr__(self, 'events', _scenario_events(where, self.events))
+        from .events import node_events
+        object.__setattr__(self, 'events', node_events(where, self.events))
 
     @property
     def valve_test(self) -> bool:
@@ -155,39 +156,6 @@ def command_series(scenario: Scenario, t_s: np.ndarray) -> np.ndarray:
 
 _FIELDS = {f.name for f in dataclasses.fields(Scenario)} - {'name'}
 _TUPLES = ('com_times_s', 'com_values_m', 'valve_test_flows_m3_s')
-
-
-#: Nodes a scenario's events go to, and the parameters each may change while running.
-def _event_nodes() -> dict:
-    from .events import CONTROLLER_RUNTIME, PLANT_RUNTIME
-    return {'servovalve_plant': PLANT_RUNTIME, 'controller': CONTROLLER_RUNTIME}
-
-
-def _scenario_events(where: str, events) -> tuple:
-    """A scenario's ``events``: ``({t_s, node, set: {name: value}}, ...)`` or ``(t_s, node,
-    {name: value})`` tuples -> ``((t_s, node, ((name, value), ...)), ...)``, checked."""
-    from .events import EventSchedule
-    nodes = _event_nodes()
-    out = []
-    for item in events or ():
-        if isinstance(item, dict):
-            unknown = sorted(set(item) - {'t_s', 'node', 'set'})
-            if unknown or not {'t_s', 'node', 'set'} <= set(item):
-                raise ParameterError(f'{where}: each event needs t_s, node and set (got '
-                                     f'{", ".join(sorted(item))})')
-            item = (item['t_s'], item['node'], item['set'])
-        try:
-            t_s, node, changes = item
-            changes = dict(changes)
-        except (TypeError, ValueError):
-            raise ParameterError(f'{where}: event {item!r} is not (t_s, node, '
-                                 '{name: value})') from None
-        if node not in nodes:
-            raise ParameterError(f'{where}: event node {node!r} must be one of '
-                                 f'{", ".join(nodes)}')
-        ev = next(iter(EventSchedule([(t_s, changes)], allowed=nodes[node])))
-        out.append((ev.t_s, str(node), ev.changes))
-    return tuple(out)
 
 
 def load_scenarios(path: Path | str | None = None) -> dict[str, Scenario]:

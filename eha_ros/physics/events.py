@@ -25,8 +25,8 @@ from typing import Iterable, Mapping
 from .params import (SPEC_BY_NAME, ParameterError, PlantParams, params_from_mapping,
                      params_to_dict)
 
-__all__ = ['PLANT_RUNTIME', 'CONTROLLER_RUNTIME', 'Event', 'EventSchedule', 'parse_event',
-           'format_event']
+__all__ = ['PLANT_RUNTIME', 'CONTROLLER_RUNTIME', 'EVENT_NODES', 'Event', 'EventSchedule',
+           'parse_event', 'format_event', 'node_events']
 
 #: Plant parameters that may change while it runs: wear, degradation and load.
 PLANT_RUNTIME = ('overlap_supply_m', 'overlap_return_m', 'radial_clearance_m',
@@ -243,3 +243,42 @@ class EventSchedule:
         if self.period_ns is None:
             raise ParameterError('the schedule has no period_ns to count ticks with')
         return -(-round(ev.t_s * 1e9) // self.period_ns)
+
+
+#: The nodes that take events, and the parameters each may change while running.
+EVENT_NODES = {'servovalve_plant': PLANT_RUNTIME, 'controller': CONTROLLER_RUNTIME}
+
+
+def node_events(where: str, events) -> tuple:
+    """Events addressed to nodes - ``{t_s, node, set: {name: value}}`` mappings (a scenario's
+    YAML) or ``(t_s, node, {name: value})`` tuples - checked: the node takes events
+    (:data:`EVENT_NODES`), every name is one it may change, times and values are numbers.
+    Returns ``((t_s, node, ((name, value), ...)), ...)``.
+
+    Raises
+    ------
+    ParameterError
+        One line starting with ``where``, naming the event and what is wrong.
+    """
+    out = []
+    for item in events or ():
+        if isinstance(item, Mapping):
+            if set(item) != {'t_s', 'node', 'set'}:
+                raise ParameterError(f'{where}: each event needs t_s, node and set (got '
+                                     f'{", ".join(sorted(map(str, item)))})')
+            item = (item['t_s'], item['node'], item['set'])
+        try:
+            t_s, node, changes = item
+            changes = dict(changes)
+        except (TypeError, ValueError):
+            raise ParameterError(f'{where}: event {item!r} is not (t_s, node, '
+                                 '{name: value})') from None
+        if node not in EVENT_NODES:
+            raise ParameterError(f'{where}: event at {t_s} s: node {node!r} takes no events '
+                                 f'(nodes with events: {", ".join(EVENT_NODES)})')
+        try:
+            ev, = EventSchedule([(t_s, changes)], allowed=EVENT_NODES[node])
+        except ParameterError as exc:
+            raise ParameterError(f'{where}: {node}: {exc}') from None
+        out.append((ev.t_s, str(node), ev.changes))
+    return tuple(out)

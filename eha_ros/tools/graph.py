@@ -49,7 +49,6 @@ from pathlib import Path
 import sys
 import textwrap
 
-import numpy as np
 import yaml
 
 from eha_ros import graph
@@ -192,7 +191,8 @@ def node_defaults(descriptions: bool = False) -> dict:
     finally:
         rclpy.try_shutdown(context=context)
     recorder = dict(RECORDER_PARAMETERS, use_sim_time=(False, ''))
-    out['recorder'] = {k: ((v, d) if descriptions else v) for k, (v, d) in sorted(recorder.items())}
+    out['recorder'] = {k: ((v, d) if descriptions else v)
+                       for k, (v, d) in sorted(recorder.items())}
     return out
 
 
