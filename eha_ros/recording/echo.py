@@ -66,7 +66,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     topic = args.topic if args.topic.startswith('/') else '/' + args.topic
 
     import rclpy
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
 
     rclpy.init(args=None, signal_handler_options=SignalHandlerOptions.NO)
@@ -100,6 +100,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         if publishers and not all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE
                                   for p in publishers):
             qos.reliability = ReliabilityPolicy.BEST_EFFORT
+        if publishers and all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                              for p in publishers):  # latched (/eha/events): its history too
+            qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
 
         state = {'count': 0, 'writer': None}
 
