@@ -8,7 +8,10 @@ Two ways to start the graph:
 * ``processes=False`` - all nodes in this process on one executor.
 
 Either way a collector node in this process records ``/eha/state``, ``/eha/command``,
-``/eha/servovalve_command`` and ``/eha/health``.  Example::
+``/eha/servovalve_command``, ``/eha/health``, ``/diagnostics`` and ``/eha/events``, and counts
+what the publishers' sequence numbers say it missed.  The graph starts only when every node's
+endpoints, the collector's included, have matched their peers (the start-up handshake,
+:mod:`eha_ros.nodes.handshake`).  Example::
 
     from eha_ros.harness import GraphConfig, run_graph
     result = run_graph(GraphConfig(scenario='step_0p1', model='hf', mode='lockstep'))
