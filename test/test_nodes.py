@@ -167,6 +167,7 @@ def test_realtime_plant_locks_simulated_time_to_the_wall_clock(ros_env):
         wall = [10_000_000_000]
         node._now_ns = lambda: wall[0]
         node._anchor(wall[0])  # the graph's start (the handshake's, in a graph)
+        node._started = True
         ms = 1_000_000
 
         def call(dt_ns):

@@ -187,11 +187,16 @@ class StartCoordinator(Handshake):
     included) until :func:`evaluate` passes, then publishes the start, ``start_delay_s`` ahead
     in realtime (at once in lockstep). After ``timeout_s`` (0: never) without a start it sets
     ``error`` to one line saying what never matched; it logs what it waits for every
-    ``log_every_s``."""
+    ``log_every_s``. ``grid()``, where given, starts the coordinator's periodic timer and
+    returns ``(its creation time, its period)`` (``time.monotonic_ns``, ns): the realtime start
+    is then the first point of that timer's grid at least ``start_delay_s`` ahead."""
 
     def __init__(self, node: Node, nodes: Iterable[str], mode: str, timeout_s: float,
-                 start_delay_s: float, on_start=None, log_every_s: float = 5.0):
+                 start_delay_s: float, on_start=None, log_every_s: float = 5.0,
+                 grid: Optional[Callable[[], tuple]] = None):
         self.nodes = list(dict.fromkeys(list(nodes) + [node.get_name()]))
+        self.grid = grid
+        self.start_monotonic_exact_ns: Optional[int] = None
         self.mode_name = mode
         self.timeout_s = float(timeout_s)
         self.start_delay_s = float(start_delay_s)
@@ -210,7 +215,14 @@ class StartCoordinator(Handshake):
         now = time.monotonic_ns()
         if problem is None:
             delay = self.start_delay_s if self.mode_name == 'realtime' else 0.0
-            start_ns = time.time_ns() + round(delay * 1e9)
+            start_mono = now + round(delay * 1e9)
+            if self.grid is not None and self.mode_name == 'realtime':
+                # the start on the coordinator's own timer grid: its first tick is then due
+                # when its timer fires, not a timer latency later
+                origin, period = self.grid()
+                start_mono = origin + -(-(start_mono - origin) // period) * period
+            self.start_monotonic_exact_ns = start_mono
+            start_ns = start_mono + (time.time_ns() - time.monotonic_ns())
             discovery = (now - self.created_monotonic_ns) * 1e-9
             self._report(counts, 'start', {'start_time_ns': start_ns, 'mode': self.mode_name,
                                            'nodes': ','.join(self.nodes),

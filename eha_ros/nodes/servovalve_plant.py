@@ -59,7 +59,7 @@ from eha_ros.physics.params import replace
 from eha_ros.physics.plant import S_P1, S_P2, S_XJ
 from eha_ros.physics.valve_test import PreflightCheck, ValveTest
 
-from .common import (advertise, apply_realtime_settings, at_start, begin_timing, declare,
+from .common import (advertise, apply_realtime_settings, begin_timing, declare,
                      declare_physics, declare_realtime, EventChannel, MODES, ns_to_stamp,
                      run_node, stamp_to_ns, subscribe, TickTiming, TOPIC_CLOCK,
                      TOPIC_SERVOVALVE, TOPIC_STATE, validator)
@@ -172,7 +172,7 @@ class ServovalvePlant(Node):
             self.clock_pub = advertise(self, Clock, TOPIC_CLOCK)
         self.handshake = StartCoordinator(self, handshake_nodes, self.mode,
                                           handshake_timeout_s, start_delay_s,
-                                          on_start=self._on_start)
+                                          on_start=self._on_start, grid=self._start_timer)
         for entity, topic in ((self.state_pub, TOPIC_STATE), (command_sub, TOPIC_SERVOVALVE),
                               (self.timing.pub, '/diagnostics')):
             self.handshake.watch(entity, topic)
@@ -320,23 +320,27 @@ class ServovalvePlant(Node):
     def _on_start(self, start_ns: int, mode: str) -> None:
         """The handshake is complete: lockstep publishes tick 0 now; realtime publishes tick 0
         at the common start time and tick k k periods later."""
-        start_mono = self.handshake.start_monotonic_ns()
+        start_mono = (self.handshake.start_monotonic_exact_ns
+                      or self.handshake.start_monotonic_ns())
         begin_timing(self, self.timing, start_mono, self._warm_up_s)
         self._started = True
         if self.mode == 'lockstep':
             self._publish_tick()
             return
         self._anchor(start_mono)
-        at_start(self, start_mono, self._begin_realtime)
 
     def _anchor(self, start_mono_ns: int) -> None:
         """Realtime: tick k falls due at ``start_mono_ns`` plus k periods."""
         self._rt_anchor = start_mono_ns
         self._rt_next = 0
 
-    def _begin_realtime(self) -> None:
+    def _start_timer(self) -> tuple:
+        """Realtime: the tick timer, started as the handshake completes; the common start is
+        chosen on its grid (``(creation time, period)``, ns), so tick k's call comes when tick
+        k falls due (calls before the start do nothing)."""
+        origin = time.monotonic_ns()
         self.create_timer(self.period_ns * 1e-9, self._on_timer, clock=self._steady)
-        self._on_timer()
+        return origin, self.period_ns
 
     # realtime ----------------------------------------------------------------------------
     def _now_ns(self) -> int:
@@ -344,6 +348,8 @@ class ServovalvePlant(Node):
         return self._steady.now().nanoseconds
 
     def _on_timer(self):
+        if not self._started:
+            return
         now = self._now_ns()
         began = time.monotonic_ns()
         try:
@@ -354,6 +360,8 @@ class ServovalvePlant(Node):
     def _catch_up(self, now: int):
         """Run every tick due by ``now``: tick k falls due at the start plus k periods (plus
         the periods slipped so far); at most ``max_catch_up`` at once, the rest slips."""
+        if now < self._rt_anchor:
+            return  # before the start (the timer runs from the handshake on)
         due = (now - self._rt_anchor) // self.period_ns
         behind = due - self._rt_next + 1
         if behind <= 0:
