@@ -38,7 +38,7 @@ from typing import Dict, Optional
 
 __all__ = ['NAMESPACE', 'TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOPIC_HEALTH',
            'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'TOPIC_EVENTS', 'TOPIC_HANDSHAKE', 'TOPICS',
-           'LATCHED_TOPICS', 'LATCHED_DEPTH', 'topic_qos', 'RATES_HZ', 'QOS_DEPTH',
+           'LATCHED_TOPICS', 'LATCHED_DEPTH', 'is_latched', 'topic_qos', 'RATES_HZ', 'QOS_DEPTH',
            'QOS_RELIABILITY', 'QOS_DURABILITY', 'QOS_HISTORY', 'graph_qos', 'topics_in',
            'normalize_type', 'message_class', 'MODES', 'MODELS', 'REFERENCE_MODELS',
            'DYNAMIC_MODELS', 'ALGEBRAIC_MODELS',
@@ -145,13 +145,18 @@ def graph_qos(depth: Optional[int] = None):
                       durability=DurabilityPolicy.VOLATILE)
 
 
+def is_latched(topic: str) -> bool:
+    """Whether graph topic ``topic`` (any namespace) is one of :data:`LATCHED_TOPICS`."""
+    return topic.rsplit('/', 1)[-1] in {t.rsplit('/', 1)[-1] for t in LATCHED_TOPICS}
+
+
 def topic_qos(topic: str, depth: Optional[int] = None):
     """The QoS of graph topic ``topic`` (any namespace): latched for :data:`LATCHED_TOPICS`,
     else :func:`graph_qos`."""
     from rclpy.qos import DurabilityPolicy
 
     qos = graph_qos(depth)
-    if topic.rsplit('/', 1)[-1] in {t.rsplit('/', 1)[-1] for t in LATCHED_TOPICS}:
+    if is_latched(topic):
         qos.durability = DurabilityPolicy.TRANSIENT_LOCAL
         if depth is None:
             qos.depth = LATCHED_DEPTH

@@ -38,7 +38,7 @@ from rclpy.clock import ClockType
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 
-from eha_ros.graph import LATCHED_TOPICS, TOPIC_HANDSHAKE, topic_qos
+from eha_ros.graph import is_latched, TOPIC_HANDSHAKE, topic_qos
 
 __all__ = ['COORDINATOR', 'Handshake', 'StartCoordinator', 'HandshakeError', 'evaluate',
            'parse_report']
@@ -125,8 +125,7 @@ class Handshake:
     def watch(self, entity, topic: str) -> None:
         """Count ``entity`` (a publisher or a subscription on ``topic``) in the handshake;
         latched topics are left out (their readers get the history)."""
-        if topic in LATCHED_TOPICS or topic.rsplit('/', 1)[-1] in {
-                t.rsplit('/', 1)[-1] for t in LATCHED_TOPICS}:
+        if is_latched(topic):
             return
         kind = 'pub' if isinstance(entity, Publisher) else 'sub'
         self._endpoints.append((kind, topic, entity))
@@ -176,10 +175,6 @@ class Handshake:
     def start_monotonic_ns(self) -> int:
         """The start time on this process's monotonic clock."""
         return time.monotonic_ns() + (self.start_ns - time.time_ns())
-
-    def discovery_s(self) -> float:
-        """From this node's handshake creation to the graph's start (s)."""
-        return max(0.0, (self.start_monotonic_ns() - self.created_monotonic_ns) * 1e-9)
 
 
 class StartCoordinator(Handshake):

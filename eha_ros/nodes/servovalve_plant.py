@@ -327,6 +327,7 @@ class ServovalvePlant(Node):
         if self.mode == 'lockstep':
             self._publish_tick()
             return
+        self._watchdog.cancel()  # realtime: it only watched the handshake
         self._anchor(start_mono)
 
     def _anchor(self, start_mono_ns: int) -> None:

@@ -269,8 +269,7 @@ class Recorder(Node):
         self.handshake = Handshake(self)
         for state in states:
             self._states[state.topic] = state
-            topic_qos = (graph.topic_qos(state.topic) if state.topic.rsplit('/', 1)[-1] in
-                         {t.rsplit('/', 1)[-1] for t in graph.LATCHED_TOPICS} else qos)
+            topic_qos = graph.topic_qos(state.topic) if graph.is_latched(state.topic) else qos
             state.subscription = self.create_subscription(
                 state.cls, state.topic, self._callback(state), topic_qos, raw=True)
             self.handshake.watch(state.subscription, state.topic)
