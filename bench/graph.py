@@ -40,7 +40,7 @@ import numpy as np
 from eha_ros.graph import TIMING_SUFFIX
 from eha_ros.harness import GraphConfig, run_graph
 from eha_ros.isolation import ros_environment
-from eha_ros.surrogates.base import models_dir
+from eha_ros.artefacts import models_dir
 
 _TICK_S = os.sysconf('SC_CLK_TCK')
 
@@ -160,7 +160,7 @@ def realtime(seconds, processes, health=False, record=False, rt=False):
 def lockstep(models, sim_s, processes):
     out = {}
     for model in models:
-        if model != 'hf' and not (models_dir() / f'{model}.npz').is_file():
+        if model != 'hf' and not (models_dir('surrogates') / f'{model}.npz').is_file():
             out[model] = {'skipped': 'no shipped artefact'}
             continue
         with ros_environment() as env:

@@ -39,11 +39,13 @@ from eha_ros.graph import LEVEL_NAMES, REFERENCE_SCENARIOS as SCENARIOS
 from eha_ros.physics import default_params, get_scenario, simulate
 from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
 from eha_ros.physics.params import replace
-from eha_ros.physics.valve_test import run_preflight
-from eha_ros.surrogates.diagnostics import add_noise
-from eha_ros.surrogates.faults import FAULTS, apply_wear, combination_cases, load_faults
-from eha_ros.surrogates.health import (HealthThresholds, InServiceEstimator, ValveTestEstimator,
-                                       classify, classify_fault)
+from eha_ros.physics.maintenance import run_preflight
+from eha_ros.health.posterior import InServiceEstimator
+from eha_ros.health.preflight import FAULTS, load_faults
+from eha_ros.health.thresholds import HealthThresholds, classify, classify_fault
+from eha_ros.health.valve_test import ValveTestEstimator
+from eha_ros.training.preflight import apply_wear, combination_cases
+from eha_ros.training.valve_test import add_noise
 
 VALVES = {'nominal': (2.5e-6, 1e-6), 'clearance_4p5': (4.5e-6, 1e-6),
           'underlap_1': (2.5e-6, -1e-6), 'worn': (4.5e-6, -0.5e-6)}
@@ -200,7 +202,7 @@ def bench_realtime(seconds):
 
     from eha_ros.harness import GraphConfig, run_graph
     from eha_ros.physics import load_params
-    from eha_ros.surrogates.monitor import MonitorCore
+    from eha_ros.health.monitor import MonitorCore
     from eha_ros.isolation import ros_environment
     with ros_environment() as env:
         r = run_graph(GraphConfig(scenario='sine_0p1_5pi', model='hf', mode='realtime',

@@ -1,5 +1,5 @@
 """Surrogates in the closed loop against hf, judged against hf's own sensitivity: prints one
-JSON object (:mod:`eha_ros.surrogates.inloop` defines every figure).
+JSON object (:mod:`eha_ros.evaluation` defines every figure).
 
 Cases: the reference's nine scenarios, ``step_1mm`` (large signal) and ``chirp_0p1``, at
 nominal wear and two off-grid wear points (off the wear grids of every table).  Noise-free:
@@ -7,7 +7,7 @@ errors, yardstick, bounds and features per case, every model, and hf and the dyn
 surrogates again at each of ``--large-dts`` (2, 5 and 10 us) against hf at 1 us, which gives
 ``largest_steps``: per model the largest step meeting the bounds in every case.  With noise
 (nominal wear): ``--seeds`` seeds (20: the errors are heavy-tailed on small-signal holds, see
-:mod:`eha_ros.surrogates.inloop`) for ``--noise-models`` (default all but the reference's
+:mod:`eha_ros.evaluation`) for ``--noise-models`` (default all but the reference's
 networks ``nn``, ``nn2``, which miss the noise-free bounds by far and cost 15-20x hf).
 Cost: wall seconds per simulated second of each run against hf's (JIT compilation excluded:
 each process runs every model once before); ``bench/plant_rtf.py`` measures cost on its own.
@@ -31,8 +31,8 @@ os.environ.setdefault('NUMBA_NUM_THREADS', '1')
 from eha_ros.graph import MODELS, REFERENCE_SCENARIOS  # noqa: E402
 from eha_ros.physics import default_params  # noqa: E402
 from eha_ros.physics.params import replace  # noqa: E402
-from eha_ros.surrogates.base import load_surrogate  # noqa: E402
-from eha_ros.surrogates.inloop import (CONTROLLER_PERIOD_S, DT_S, EXTRA_SCENARIOS,  # noqa
+from eha_ros.surrogates.registry import load_surrogate  # noqa: E402
+from eha_ros.evaluation import (CONTROLLER_PERIOD_S, DT_S, EXTRA_SCENARIOS,  # noqa
                                        WEAR, largest_steps, noise_free, run,
                                        summarise, with_noise)
 

@@ -25,7 +25,7 @@ os.environ.setdefault('NUMBA_NUM_THREADS', '1')
 
 from eha_ros.graph import DYNAMIC_MODELS, MODELS  # noqa: E402
 from eha_ros.physics import default_params, simulate  # noqa: E402
-from eha_ros.surrogates.base import load_surrogate  # noqa: E402
+from eha_ros.surrogates.registry import load_surrogate  # noqa: E402
 
 
 def main():

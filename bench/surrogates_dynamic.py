@@ -20,9 +20,10 @@ from numba import njit
 from eha_ros.graph import DYNAMIC_MODELS
 from eha_ros.physics import default_params
 from eha_ros.physics.valve import valve_flows
-from eha_ros.surrogates.base import load_surrogate, models_dir
+from eha_ros.artefacts import models_dir
+from eha_ros.surrogates.registry import load_surrogate
 from eha_ros.surrogates.dynamic import _chamber_loop
-from eha_ros.surrogates.dynamic_train import build_dga, chamber_errors, edge_errors
+from eha_ros.training.dynamic import build_dga, chamber_errors, edge_errors
 
 
 @njit(cache=True)
@@ -72,7 +73,7 @@ def main():
         t0 = time.perf_counter()
         out['models'][name] = {'edge_flow_relative': edge_errors(s, n=args.n, seed=5),
                                'chamber_flow_relative_to_max': chamber_errors(s),
-                               'artefact_bytes': (models_dir() / f'{name}.npz').stat().st_size,
+                               'artefact_bytes': (models_dir('surrogates') / f'{name}.npz').stat().st_size,
                                'kernel_ns_per_call': ns}
         out['models'][name]['eval_s'] = round(time.perf_counter() - t0, 2)
     if args.refit:

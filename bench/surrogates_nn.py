@@ -22,10 +22,14 @@ import time
 import numpy as np
 
 from eha_ros.physics import default_params
-from eha_ros.surrogates import diagnostics, nn, nn_train
-from eha_ros.surrogates.database import heldout_maps
-from eha_ros.surrogates.base import load_surrogate, relative_error
-from eha_ros.surrogates.database import get_database
+from eha_ros.health import valve_test
+from eha_ros.surrogates import nn
+from eha_ros.training import nn as nn_train
+from eha_ros.training import valve_test as valve_test_training
+from eha_ros.training.database import heldout_maps
+from eha_ros.surrogates.base import relative_error
+from eha_ros.surrogates.registry import load_surrogate
+from eha_ros.training.database import get_database
 
 
 def _summary(errs):
@@ -74,21 +78,21 @@ def _nn_accuracy(s):
         test = [tuple(t) for t in meta['training']['split']['test_pairs']]
         for name in meta['training']['databases']:
             db = get_database(name)
-            out[f'{name}_held_out'] = _summary(nn_train.map_errors(s.data, nn_train.db_maps(db, test)))
+            out[f'{name}_held_out'] = _summary(nn_train.network_map_errors(s.data, nn_train.db_maps(db, test)))
         for q_max in (6e-5, 1.5e-5):
             maps = heldout_maps(12, q_max_m3_s=q_max, n_q=15, seed=4242)
-            out[f'fresh_random_wear_q{q_max:.1e}'] = _summary(nn_train.map_errors(s.data, maps))
+            out[f'fresh_random_wear_q{q_max:.1e}'] = _summary(nn_train.network_map_errors(s.data, maps))
     else:
         db = get_database('DB5')
         cols = np.array(meta['training']['split']['test_flows'])
-        out['DB5_held_out_flows'] = _summary(nn_train.map_errors(s.data, [
+        out['DB5_held_out_flows'] = _summary(nn_train.network_map_errors(s.data, [
             (db.xs_m, db.q_m3_s[cols], db.overlap_m[0], db.clearance_m[0],
              db.p12_pa[:, cols, 0, 0])]))
         # a fresh nominal map at flows between the database's
         from eha_ros.physics.maps import transient_map
         q_mid = 0.5 * (db.q_m3_s[1:] + db.q_m3_s[:-1])[::4]
         fresh = transient_map(db.xs_m[:, None], q_mid[None, :])['p12_pa']
-        out['fresh_flows_between_grid'] = _summary(nn_train.map_errors(s.data, [
+        out['fresh_flows_between_grid'] = _summary(nn_train.network_map_errors(s.data, [
             (db.xs_m, q_mid, db.overlap_m[0], db.clearance_m[0], fresh)]))
     return out
 
@@ -128,7 +132,7 @@ def _sklearn(meta, max_iter, seed=0):
 
 
 def _diag(seed=0):
-    m = diagnostics.load_diagnostic()
+    m = valve_test.load_diagnostic()
     out = {'architecture': m.meta['architecture'], 'training': {
         k: m.meta['training'][k] for k in ('algorithm', 'time_s', 'adam_steps', 'lbfgs_iters',
                                            'noise_augmentation')},
@@ -139,22 +143,22 @@ def _diag(seed=0):
     wear = np.concatenate([np.tile([clr, lap], (mq.size, 1)) for _, mq, lap, clr, _ in maps])
     idx = np.repeat(np.arange(len(maps)), maps[0][1].size)
     out['fresh_random_wear'] = {
-        'clean': diagnostics.wear_errors(m, curves, q, wear, idx),
-        'noise_1pct': diagnostics.wear_errors(m, curves, q, wear, idx, noise_level=0.01,
+        'clean': valve_test_training.wear_errors(m, curves, q, wear, idx),
+        'noise_1pct': valve_test_training.wear_errors(m, curves, q, wear, idx, noise_level=0.01,
                                               seed=seed),
-        'noise_1pct_rms': diagnostics.wear_errors(m, curves, q, wear, idx, noise_level=0.01,
+        'noise_1pct_rms': valve_test_training.wear_errors(m, curves, q, wear, idx, noise_level=0.01,
                                                   noise='rms', seed=seed)}
     one = curves[0]
-    diagnostics.estimate_wear(one, q[0])
+    valve_test.estimate_wear(one, q[0])
     n = 2000
     t0 = time.perf_counter()
     for _ in range(n):
-        diagnostics.estimate_wear(one, q[0])
+        valve_test.estimate_wear(one, q[0])
     t_one = (time.perf_counter() - t0) / n
     big = np.tile(curves, (50, 1))
     qb = np.tile(q, 50)
     t0 = time.perf_counter()
-    diagnostics.estimate_wear_batch(big, qb)
+    valve_test.estimate_wear_batch(big, qb)
     out['speed'] = {'estimate_wear_call_us': round(t_one * 1e6, 1),
                     'batch_curves_per_s': round(big.shape[0] / (time.perf_counter() - t0))}
     return out

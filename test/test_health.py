@@ -5,8 +5,9 @@ import pytest
 
 from eha_ros.physics import ParameterError, default_params, simulate
 from eha_ros.physics.params import replace
-from eha_ros.surrogates.health import (ERROR, OK, WARN, HealthEstimate, HealthThresholds,
-                                       InServiceEstimator, classify, classify_fault)
+from eha_ros.health.posterior import InServiceEstimator
+from eha_ros.health.thresholds import (ERROR, OK, WARN, HealthEstimate, HealthThresholds,
+                                       classify, classify_fault)
 
 P = default_params()
 
@@ -160,7 +161,7 @@ def test_diagnostics_go_stale_when_states_stop(ros_env):
     from eha_ros.msg import ActuatorState
     from eha_ros.nodes.common import QOS, make_executor
     from eha_ros.nodes.health_monitor import HealthMonitor
-    from eha_ros.surrogates.monitor import ITEMS
+    from eha_ros.health.monitor import ITEMS
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     try:

@@ -1,4 +1,4 @@
-"""The in-loop comparison's bookkeeping (:mod:`eha_ros.surrogates.inloop`): the step ladder,
+"""The in-loop comparison's bookkeeping (:mod:`eha_ros.evaluation`): the step ladder,
 the seeds' statistics and the larger-step runs."""
 
 import math
@@ -8,8 +8,8 @@ import pytest
 
 from eha_ros.physics import default_params
 from eha_ros.physics.params import replace
-from eha_ros.surrogates.base import load_surrogate
-from eha_ros.surrogates.inloop import DT_S, largest_steps, noise_free, with_noise
+from eha_ros.surrogates.registry import load_surrogate
+from eha_ros.evaluation import DT_S, largest_steps, noise_free, with_noise
 
 
 def _row(meeting, cases=3, cost=1.0):

@@ -270,7 +270,7 @@ def test_realtime_controller_trigger(ros_env, trigger, per_state):
 def test_loop_with_each_surrogate_is_stable_and_matches_its_physics_run(eha_graph, model):
     """The plant with a surrogate fluid block closes the loop: the 0.1 mm step settles within
     the static band and the graph reproduces the physics-only run with that surrogate."""
-    from eha_ros.surrogates.base import load_surrogate
+    from eha_ros.surrogates.registry import load_surrogate
     r = eha_graph(processes=False, scenario='step_0p1', model=model, duration_s=0.2)
     assert set(r.state['status']) <= {0}
     x = r.state['jack_position_m']

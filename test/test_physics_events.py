@@ -88,7 +88,7 @@ def test_event_at_zero_equals_run_with_those_parameters():
 
 
 def test_dynamic_surrogate_reprepared_at_the_event():
-    from eha_ros.surrogates.base import load_surrogate
+    from eha_ros.surrogates.registry import load_surrogate
     events = ['0.03:radial_clearance_m=3.5e-6']
     sim = _sim(P, 'step_0p1', 0.08, events, fluid=load_surrogate('dlut', P))
     _assert_same(sim, _graph_loop(P, 'step_0p1', 0.08, events, fluid=load_surrogate('dlut', P)))

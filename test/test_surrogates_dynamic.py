@@ -11,14 +11,15 @@ from eha_ros.physics.maps import WEAR_RANGES, spool_grid
 from eha_ros.physics.params import ParameterError, replace
 from eha_ros.physics.plant import Plant, check_dt, stability_limits
 from eha_ros.physics.valve import valve_flows
-from eha_ros.surrogates.base import SurrogateError, load_surrogate, relative_error
+from eha_ros.surrogates.base import SurrogateError, relative_error
+from eha_ros.surrogates.registry import load_surrogate
 from eha_ros.surrogates.dynamic import DynamicSurrogate, edge_flows
 
 P = default_params()
 
 #: Stated tolerances of the chamber flows against hf's ``valve_flows``, relative to the largest
 #: |flow| over the pressures at the same spool position (a chamber flow crosses zero at its
-#: balance pressure).  Measured maxima (``python -m eha_ros.surrogates.dynamic_train``, in each
+#: balance pressure).  Measured maxima (``python -m eha_ros.training.dynamic``, in each
 #: artefact's meta, nominal and two off-grid wear points): dlut 2.3e-4, dga 5.9e-4, dnn 8.9e-4
 #: (8.7e-4 on this test's grid).
 CHAMBER_TOL = {'dlut': 1e-3, 'dga': 1.5e-3, 'dnn': 2e-3}
@@ -235,7 +236,7 @@ def test_dnn_numpy_is_the_trained_network():
     activation, inputs, skip term, normalisations)."""
     torch = pytest.importorskip('torch')
     from eha_ros.surrogates.dynamic import dnn_features, dnn_numpy
-    from eha_ros.surrogates.training import make_torch_mlp
+    from eha_ros.training.networks import make_torch_mlp
     s = load_surrogate('dnn')
     data, arch = s.data, s.meta['architecture']
     m = make_torch_mlp(d_in=4, d_hidden=arch['d_hidden'], activation=arch['activation'],
@@ -251,8 +252,8 @@ def test_dnn_numpy_is_the_trained_network():
 
 
 def test_dnn_refuses_an_artefact_its_kernel_does_not_evaluate(tmp_path):
-    from eha_ros.surrogates.base import load_artefact, models_dir, save_artefact
-    data, meta = load_artefact(models_dir() / 'dnn.npz')
+    from eha_ros.artefacts import load_artefact, models_dir, save_artefact
+    data, meta = load_artefact(models_dir('surrogates') / 'dnn.npz', 'eha_ros.training.dynamic')
     meta = dict(meta, architecture=dict(meta['architecture'], activation='tanh'))
     save_artefact(tmp_path / 'dnn.npz', data, meta)
     with pytest.raises(SurrogateError, match='quintic'):
@@ -266,7 +267,7 @@ def test_dnn_follows_hf_on_small_signals(scenario, lap, clr):
     """Noise off, the small-signal cases the earlier network failed (spool near null, the
     chamber pressures set by nearly covered edges): within the in-loop bounds of
     bench/inloop.py (jack <= max(1 %, 2 x yardstick), P12 <= max(5 %, 2 x yardstick))."""
-    from eha_ros.surrogates.inloop import noise_free
+    from eha_ros.evaluation import noise_free
     p = replace(_worn(lap, clr), noise_std_a=0.0)
     case = noise_free(p, scenario, {'dnn': load_surrogate('dnn')})
     got = case['models']['dnn']

@@ -12,10 +12,15 @@ import pytest
 from eha_ros.physics import default_params
 from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
 from eha_ros.physics.params import replace
-from eha_ros.surrogates import diagnostics, nn, nn_train, training
-from eha_ros.surrogates.base import (FluidSurrogate, SurrogateError, load_surrogate,
-                                     relative_error)
-from eha_ros.surrogates.database import heldout_maps
+from eha_ros.health import valve_test
+from eha_ros.surrogates import nn
+from eha_ros.training import networks
+from eha_ros.training import nn as nn_train
+from eha_ros.training import valve_test as valve_test_training
+from eha_ros.artefacts import ArtefactError
+from eha_ros.surrogates.base import FluidSurrogate, SurrogateError, relative_error
+from eha_ros.surrogates.registry import load_surrogate
+from eha_ros.training.database import heldout_maps
 
 RNG = np.random.default_rng(20240611)
 
@@ -34,7 +39,7 @@ def _random_packed(sizes, sources, transforms, rng, seed=0):
     raw = _random_inputs(500, rng)
     scales = [default_params().spool_stroke_m / math.sinh(4.0), None, None, None]
     inputs = nn.fit_inputs(raw, sources, transforms, [scales[s] for s in sources])
-    model = training.make_torch_mlp(d_in=sizes[0], d_hidden=sizes[1:-1], seed=seed)
+    model = networks.make_torch_mlp(d_in=sizes[0], d_hidden=sizes[1:-1], seed=seed)
     with torch.no_grad():  # non-zero biases too
         model.theta.add_(0.3 * torch.randn(model.theta.shape, dtype=torch.float64,
                                            generator=torch.Generator().manual_seed(seed)))
@@ -69,7 +74,7 @@ def test_jacobian_by_hand_matches_autograd():
     torch = pytest.importorskip('torch')
     from torch.func import jacrev, vmap
     for d_out in (1, 2):
-        model = training.make_torch_mlp(d_in=3, d_hidden=[5, 4], d_out=d_out, seed=1)
+        model = networks.make_torch_mlp(d_in=3, d_hidden=[5, 4], d_out=d_out, seed=1)
         x = torch.randn(7, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(2))
         theta = model.theta.detach()
         ref = vmap(jacrev(lambda th, xi: model(xi[None], th)[0]), in_dims=(None, 0))(theta, x)
@@ -87,20 +92,20 @@ def _tiny_problem():
 def test_lm_fits_small_regression_and_beats_gradient_descent():
     torch = pytest.importorskip('torch')
     x, y = _tiny_problem()
-    lm = training.make_torch_mlp(d_in=1, d_hidden=[6], seed=0)
-    start = training._mse(lm, x, y)
-    hist = training.train_lm(lm, x, y, epochs=60, threads=1)
-    loss_lm = training._mse(lm, x, y)
+    lm = networks.make_torch_mlp(d_in=1, d_hidden=[6], seed=0)
+    start = networks._mse(lm, x, y)
+    hist = networks.train_lm(lm, x, y, epochs=60, threads=1)
+    loss_lm = networks._mse(lm, x, y)
     assert hist['epochs'] == 60 or hist['stop'] in ('mu_max', 'min_grad')
     assert loss_lm < 1e-6 * start
-    gd = training.make_torch_mlp(d_in=1, d_hidden=[6], seed=0)
+    gd = networks.make_torch_mlp(d_in=1, d_hidden=[6], seed=0)
     opt = torch.optim.SGD(gd.parameters(), lr=0.2)
     for _ in range(600):  # ten times LM's epochs
         opt.zero_grad()
         loss = torch.mean((gd(x) - y) ** 2)
         loss.backward()
         opt.step()
-    loss_gd = training._mse(gd, x, y)
+    loss_gd = networks._mse(gd, x, y)
     assert loss_lm < 1e-3 * loss_gd
 
 
@@ -110,12 +115,12 @@ def test_training_is_reproducible(algorithm):
     x, y = _tiny_problem()
     thetas = []
     for _ in range(2):
-        model = training.make_torch_mlp(d_in=1, d_hidden=[4, 3], seed=7)
+        model = networks.make_torch_mlp(d_in=1, d_hidden=[4, 3], seed=7)
         if algorithm == 'lm':
-            training.train_lm(model, x, y, x_val=x[::3], y_val=y[::3], epochs=20, subsample=64,
+            networks.train_lm(model, x, y, x_val=x[::3], y_val=y[::3], epochs=20, subsample=64,
                         resample_every=5, seed=7, threads=1)
         else:
-            training.train_adam_lbfgs(model, x, y, x_val=x[::3], y_val=y[::3], adam_steps=50,
+            networks.train_adam_lbfgs(model, x, y, x_val=x[::3], y_val=y[::3], adam_steps=50,
                                 batch=32, lbfgs_iters=20, val_every=10, seed=7, threads=1)
         thetas.append(model.theta.detach().numpy().copy())
     np.testing.assert_array_equal(thetas[0], thetas[1])
@@ -184,19 +189,19 @@ def test_shipped_diag_recovers_wear(fresh_maps, noise):
                        np.diff(WEAR_RANGES['overlap_m'])[0]])
     bound = DIAG_BOUND_NOISY if noise else DIAG_BOUND_CLEAN
     for xs, q, lap, clr, p12 in fresh_maps:
-        curves = diagnostics.add_noise(p12.T, noise, rng).T if noise else p12
-        est = diagnostics.estimate_wear_map(curves, q)
+        curves = valve_test_training.add_noise(p12.T, noise, rng).T if noise else p12
+        est = valve_test.estimate_wear_map(curves, q)
         err = np.abs([est.radial_clearance_m - clr, est.overlap_m - lap]) / ranges * 100
         assert np.all(err < bound), (lap, clr, est)
         assert est.curves_used == q.size and est.radial_clearance_std_m >= 0.0
-        c1, o1 = diagnostics.estimate_wear(curves[:, 3], q[3])
+        c1, o1 = valve_test.estimate_wear(curves[:, 3], q[3])
         assert c1 == pytest.approx(est.per_curve_clearance_m[3], rel=1e-12)
         assert o1 == pytest.approx(est.per_curve_overlap_m[3], rel=1e-12, abs=1e-18)
 
 
 def test_diag_rejects_wrong_curve_length():
     with pytest.raises(ValueError, match='spool grid'):
-        diagnostics.estimate_wear(np.zeros(100), 0.0)
+        valve_test.estimate_wear(np.zeros(100), 0.0)
 
 
 def test_other_fluid_parameters_are_refused():
@@ -204,14 +209,14 @@ def test_other_fluid_parameters_are_refused():
     for name in ('nn', 'nn2'):
         with pytest.raises(SurrogateError, match='fluid parameters'):
             load_surrogate(name, params=other)
-    with pytest.raises(SurrogateError, match='fluid parameters'):
-        diagnostics.load_diagnostic(params=other)
+    with pytest.raises(ArtefactError, match='fluid parameters'):
+        valve_test.load_diagnostic(params=other)
 
 
 def test_inference_modules_do_not_import_torch():
     code = ('import sys, numpy as np\n'
-            'import eha_ros.surrogates.nn, eha_ros.surrogates.diagnostics as d\n'
-            'from eha_ros.surrogates.base import load_surrogate\n'
+            'import eha_ros.surrogates.nn, eha_ros.health.valve_test as d\n'
+            'from eha_ros.surrogates.registry import load_surrogate\n'
             "s = load_surrogate('nn'); s.p12(0.0, 1e-5, 0.0, 3e-6)\n"
             'd.estimate_wear(np.zeros(133), 0.0)\n'
             "assert 'torch' not in sys.modules, 'torch imported'\n")
@@ -219,7 +224,7 @@ def test_inference_modules_do_not_import_torch():
 
 
 def test_both_network_families_train_through_one_trainer():
-    """The fluid networks and the diagnostic network share ``training.fit_network``: with the
+    """The fluid networks and the diagnostic network share ``networks.fit_network``: with the
     same normalised data, seed and settings each gives the trainer's own network."""
     pytest.importorskip('torch')
     rng = np.random.default_rng(3)
@@ -231,7 +236,7 @@ def test_both_network_families_train_through_one_trainer():
                                         hidden=[5], algorithm='lm', seed=4, settings=st,
                                         threads=1)
     inputs, output = nn.fit_inputs(raw, [0, 1], ['linear', 'linear']), nn.fit_output(y)
-    ref, _, _ = training.fit_network(nn.transform_inputs(inputs, raw),
+    ref, _, _ = networks.fit_network(nn.transform_inputs(inputs, raw),
                                      (y - output[0]) / output[1],
                                      nn.transform_inputs(inputs, raw[::3]),
                                      (y[::3] - output[0]) / output[1], hidden=[5],
@@ -239,10 +244,10 @@ def test_both_network_families_train_through_one_trainer():
     np.testing.assert_array_equal(data[3], ref.theta.detach().numpy())
     x2 = np.stack([raw[:, 0], raw[:, 1] * 3.0], axis=1)
     y2 = np.stack([y, -y], axis=1)
-    weights, in_norm, out_norm, _, _ = diagnostics._train_one(
+    weights, in_norm, out_norm, _, _ = valve_test_training._train_one(
         x2, y2, x2[::3], y2[::3], hidden=[5], algorithm='lm', seed=4, settings=st, threads=1)
-    in2, out2 = training.minmax(x2), training.minmax(y2)
-    ref2, _, _ = training.fit_network((x2 - in2[0]) / in2[1], (y2 - out2[0]) / out2[1],
+    in2, out2 = networks.minmax(x2), networks.minmax(y2)
+    ref2, _, _ = networks.fit_network((x2 - in2[0]) / in2[1], (y2 - out2[0]) / out2[1],
                                       (x2[::3] - in2[0]) / in2[1],
                                       (y2[::3] - out2[0]) / out2[1], hidden=[5],
                                       algorithm='lm', seed=4, settings=st, threads=1)

@@ -9,7 +9,7 @@ import pytest
 from eha_ros.physics import ParameterError, Plant, default_params, get_scenario
 from eha_ros.physics.maps import spool_grid, transient_map
 from eha_ros.physics.params import replace
-from eha_ros.physics.valve_test import MAP_HOLD_S, MAP_POINTS, ValveTest
+from eha_ros.physics.maintenance import MAP_HOLD_S, MAP_POINTS, ValveTest
 
 P = default_params()
 Q = 4.285714285714286e-05  # a flow of the diagnostic network's grid
@@ -77,7 +77,7 @@ def test_network_reads_wear_from_valve_test_curves(clearance, overlap):
     """The estimator on the three default curves of a valve off the network's training grid:
     within 0.05 um of the truth (1 % of the clearance range), a small spread and a residual
     under 50 kPa (the map model at the estimate explains the curves)."""
-    from eha_ros.surrogates.health import ValveTestEstimator
+    from eha_ros.health.valve_test import ValveTestEstimator
     p = _worn(clearance, overlap)
     xs = spool_grid(MAP_POINTS, p.spool_stroke_m)
     flows = get_scenario('valve_test').valve_test_flows_m3_s
@@ -137,7 +137,7 @@ def test_graph_runs_the_valve_test_and_the_monitor_reads_the_wear(eha_graph, pro
 
 # --- pre-flight check -------------------------------------------------------------------------
 
-from eha_ros.physics.valve_test import (PREFLIGHT_PROFILE, PREFLIGHT_S,  # noqa: E402
+from eha_ros.physics.maintenance import (PREFLIGHT_PROFILE, PREFLIGHT_S,  # noqa: E402
                                         PreflightCheck, preflight_command, run_preflight)
 
 
@@ -180,7 +180,8 @@ def test_preflight_network_reads_held_out_faults():
     """The shipped pre-flight network on four wear points drawn from a stream used neither for
     training nor validation (2 and 3 simultaneous faults): every fault within 10 % of its
     range and within 3 of its stated standard deviations."""
-    from eha_ros.surrogates.faults import FAULTS, apply_wear, load_faults
+    from eha_ros.health.preflight import FAULTS, load_faults
+    from eha_ros.training.preflight import apply_wear
     model = load_faults()
     rng = np.random.default_rng(20261130)
     names = [f.name for f in FAULTS[:5]]
@@ -209,7 +210,7 @@ def test_graph_runs_the_preflight_check_live_equals_offline(eha_graph, tmp_path)
     from pathlib import Path
 
     from eha_ros.recording.mcap_io import McapReader
-    from eha_ros.surrogates.monitor import ITEMS
+    from eha_ros.health.monitor import ITEMS
     wear = {'demagnetisation': 0.3, 'offset_a': 5e-4}
     path = tmp_path / 'preflight.mcap'
     r = eha_graph(processes=False, scenario='preflight_check', plant=wear, health=True,

@@ -1,7 +1,7 @@
 """``health_monitor``: the servovalve's health from the plant's ``ActuatorState``, published
 as ``HealthStatus`` on ``/eha/health`` and as ``/diagnostics``.
 
-The logic is :class:`eha_ros.surrogates.monitor.MonitorCore`, shared with ``eha-diagnose``:
+The logic is :class:`eha_ros.health.monitor.MonitorCore`, shared with ``eha-diagnose``:
 
 * in service, every ``update_period_s`` of state time, the wear (radial clearance, overlap)
   from the (XS, Q, P12) samples of the last ``window_s`` - a posterior over the steady-state
@@ -41,8 +41,9 @@ from rclpy.node import Node
 from eha_ros.graph import LEVEL_ERROR, LEVEL_NAMES, LEVEL_OK, LEVEL_WARN
 from eha_ros.msg import ActuatorState, HealthStatus
 from eha_ros.physics import ParameterError, load_params
-from eha_ros.surrogates.health import HealthThresholds, InServiceEstimator
-from eha_ros.surrogates.monitor import ITEM_UNITS, ITEMS, MonitorCore
+from eha_ros.health.posterior import InServiceEstimator
+from eha_ros.health.thresholds import HealthThresholds
+from eha_ros.health.monitor import ITEM_UNITS, ITEMS, MonitorCore
 
 from .common import (advertise, apply_realtime_settings, declare, declare_realtime,
                      ns_to_stamp, run_node, stamp_to_ns, subscribe, TOPIC_DIAGNOSTICS,
@@ -115,7 +116,7 @@ class HealthMonitor(Node):
         self.stale_after_s = stale
         model = None
         if self.model_name != 'steady':
-            from eha_ros.surrogates.base import load_surrogate
+            from eha_ros.surrogates.registry import load_surrogate
             model = load_surrogate(self.model_name, self.params).p12
         self.core = MonitorCore(self.params, self.limits, window_s, update_s, settle_s,
                                 in_service=InServiceEstimator(self.params, model=model,

@@ -27,11 +27,11 @@ it publishes ``/clock`` and the state of tick k, and advances to tick k+1 only w
 time it publishes tick k again.
 
 Valve test (``valve_test: true``): before operating, the plant runs the diagnostic valve test of
-:mod:`eha_ros.physics.valve_test` - the reference's map sweep at ``valve_test_flows_m3_s``, one
+:mod:`eha_ros.physics.maintenance` - the reference's map sweep at ``valve_test_flows_m3_s``, one
 tick at a time, the jack clamped - and reports it with status ``STATUS_VALVE_TEST``; the health
 monitor reads the wear from those curves.  Pre-flight check (``preflight_check: true``): then
 (after the valve test, if any) the plant drives the coil open loop along
-:data:`eha_ros.physics.valve_test.PREFLIGHT_PROFILE` from the actuator at rest, the jack free
+:data:`eha_ros.physics.maintenance.PREFLIGHT_PROFILE` from the actuator at rest, the jack free
 and the controller's commands ignored, and reports it with status ``STATUS_PREFLIGHT``, the
 tick's index in ``valve_test_point`` and ``valve_test_point_end`` on its last tick; the health
 monitor reads the faults from that record.
@@ -57,7 +57,7 @@ from eha_ros.physics import ParameterError, Plant, SimulationDiverged, load_para
 from eha_ros.physics.events import EventSchedule, parse_event, PLANT_RUNTIME
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import S_P1, S_P2, S_XJ
-from eha_ros.physics.valve_test import PreflightCheck, ValveTest
+from eha_ros.physics.maintenance import PreflightCheck, ValveTest
 
 from .common import (advertise, apply_realtime_settings, begin_timing, declare,
                      declare_physics, declare_realtime, EventChannel, MODES, ns_to_stamp,
@@ -81,7 +81,7 @@ def load_fluid(model: str, params):
         return None
     if model not in MODELS:
         raise ParameterError(f'model {model!r} must be one of {", ".join(MODELS)}')
-    from eha_ros.surrogates.base import load_surrogate
+    from eha_ros.surrogates.registry import load_surrogate
     return load_surrogate(model, params)
 
 

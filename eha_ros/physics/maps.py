@@ -24,10 +24,10 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .params import PlantParams, default_params, replace
+from .params import PlantParams, default_params, params_hash, replace
 from .valve import edge_constants, net_flow, steady_pressures, valve_coefficients
 
-__all__ = ['WEAR_RANGES', 'spool_grid', 'transient_map', 'steady_map', 'MapResult',
+__all__ = ['WEAR_RANGES', 'FLUID_PARAMETERS', 'FLOW_MAX_M3_S', 'fluid_hash', 'spool_grid', 'transient_map', 'steady_map', 'MapResult',
            'settling_mask']
 
 _BLOCK = 64
@@ -35,6 +35,22 @@ _BLOCK = 64
 #: Ranges [m] of the wear parameters swept by the map databases (the nominal values of
 #: ``config/eha_params.yaml`` lie inside): overlap (supply = return edges) and radial clearance.
 WEAR_RANGES = {'overlap_m': (-2e-6, 6e-6), 'radial_clearance_m': (1e-6, 6e-6)}
+
+#: Physics parameters the fluid-dynamic block (and so every map) depends on.  Overlap and
+#: clearance are inputs of the maps and are left out.
+FLUID_PARAMETERS = (
+    'supply_pressure_pa', 'return_pressure_pa', 'vapour_pressure_pa', 'fluid_density_kg_m3',
+    'fluid_kinematic_viscosity_m2_s', 'bulk_modulus_pa', 'port_width_m', 'eccentricity_ratio',
+    'discharge_coefficient', 'cd_model', 'critical_flow_number', 'valve_degradation',
+    'map_volume_m3', 'leakage_coeff_m3_s_pa', 'spool_stroke_m')
+
+#: Flow range [m^3/s] of the maps: about 40 % of the valve's no-load flow at full stroke.
+FLOW_MAX_M3_S = 6e-5
+
+
+def fluid_hash(p: PlantParams) -> str:
+    """Hash of the parameters the maps (and every artefact built from them) depend on."""
+    return params_hash(p, FLUID_PARAMETERS)
 
 
 def spool_grid(n: int = 133, stroke_m: float | None = None, density: float = 4.0,

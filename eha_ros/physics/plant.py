@@ -375,7 +375,7 @@ def _fluid_args(fluid, p: PlantParams):
         return no_fluid_block, no_flows_block, NO_FLUID_DATA, 0
     try:
         kernel = fluid.kernel
-        family = getattr(fluid, 'family', 'algebraic')
+        family = 'dynamic' if fluid.kernel_output == 'chamber_flows' else 'algebraic'
         data = fluid.prepare(p) if hasattr(fluid, 'prepare') else fluid.data
     except AttributeError:
         raise ParameterError('fluid must provide kernel and data (a FluidSurrogate)') from None
@@ -574,7 +574,7 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
         Recording interval [s], a whole number of controller periods (default 0.1 ms, or the
         controller period if longer; ``None``: every controller tick).
     fluid : optional
-        A surrogate of the fluid-dynamic block (:func:`eha_ros.surrogates.base.load_surrogate`):
+        A surrogate of the fluid-dynamic block (:func:`eha_ros.surrogates.registry.load_surrogate`):
         algebraic, ``kernel(data, xs_m, q_m3_s, overlap_m, clearance_m) -> p12_pa``, or dynamic
         (``family = 'dynamic'``), the metering-edge flows only (see ``_run``); the
         high-fidelity block when ``None``.

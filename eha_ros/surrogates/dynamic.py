@@ -74,7 +74,7 @@ The ``dnn`` network
     orifice law's log-log asymptotes are linear in these inputs, the hidden layers learn the
     transitions).  Trained (:func:`.dynamic_train.build_dnn`) on the hf edge equations with
     most points where the loop lives (openings within ~10 um of the edge, drops up to 1.1 x
-    supply).  :func:`prepare_dnn` folds the clearance's input (constant within a run) and the
+    supply).  :meth:`DnnSurrogate._prepare` folds the clearance's input (constant within a run) and the
     normalisations into the weights; the kernel evaluates the four edges of a step as the
     four lanes of ``<4 x double>`` vectors, its LLVM IR generated for the fixed width
     (:func:`_dnn_flows`: logarithm and exponential from the floating-point bits and
@@ -91,14 +91,16 @@ from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from eha_ros.artefacts import check_hash
+from eha_ros.mlp import mlp_forward, split_weights
 from eha_ros.physics import PlantParams, default_params, params_hash
-from eha_ros.physics.maps import WEAR_RANGES
-from eha_ros.physics.valve import edge_coefficients, edge_constants, orifice_flow
-
-from .base import FluidSurrogate, SurrogateError, register_kernel
+from eha_ros.physics.maps import WEAR_RANGES, spool_grid
+from eha_ros.physics.valve import edge_coefficients, edge_constants, orifice_flow, valve_flows
+from eha_ros.surrogates.base import FluidSurrogate, SurrogateError
 
 __all__ = ['EDGE_PARAMETERS', 'edge_hash', 'DP_MAX_PA', 'edge_flows', 'edge_conductance',
-           'DynamicSurrogate', 'PREPARERS', 'register_preparer', 'chamber_flows',
+           'DynamicSurrogate', 'DlutSurrogate', 'DnnSurrogate', 'DgaSurrogate',
+           'hf_chamber_flows',
            'dlut_kernel', 'log_axis', 'dnn_kernel', 'dga_kernel', 'ga_edge_flow', 'GA_GENES',
            'DNN_WIDTH', 'dnn_features', 'dnn_numpy']
 
@@ -204,12 +206,11 @@ def _dlut_col(x, offset, shift, code0, mask, log2_cells, k_max, x_last, inv_last
     return j, b
 
 
-@register_kernel('dlut')
 @njit(cache=True)
 def dlut_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
     """(Q1L, Q2L) [m^3/s], edges from the prepared table of ``q(s, |dp|)``.
 
-    ``data = (table, int_consts, consts)`` (:func:`prepare_dlut`): per cell the four
+    ``data = (table, int_consts, consts)`` (:meth:`DlutSurrogate._prepare`): per cell the four
     coefficients of its bilinear form ``q = (q00 + b dq_b) + a (dq_a + b dq_ab)``, contiguous,
     ``a`` and ``b`` the weights of the far nodes in ``|s|`` and ``|dp|``; ``q(s, dp) =
     sign(dp) q(s, |dp|)``; ``consts = [ps, pr, ...]``.  With equal laps the edges 1S/2R and
@@ -263,7 +264,7 @@ def dlut_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
 # --- dnn: the edge network, four edges at once, no libm call ---------------------------------
 
 #: Hidden widths of ``dnn`` (two layers): fixed, the kernel's code is generated unrolled for
-#: it; :func:`prepare_dnn` refuses an artefact of other widths.
+#: it; :meth:`DnnSurrogate._prepare` refuses an artefact of other widths.
 DNN_WIDTH = 16
 
 _SHIFTER = 6755399441055744.0  # 1.5 * 2^52: x + _SHIFTER rounds x to an integer in the low bits
@@ -371,7 +372,7 @@ def _v4_ir(builder):
     def quintic_v(z):
         """The hidden activation: ``x (15 - 10 x^2 + 3 x^4) / 8``, ``x`` = ``z`` clipped to
         [-1, 1] (odd, twice continuously differentiable, saturating like tanh; the training's
-        ``quintic``, :func:`eha_ros.surrogates.training.make_torch_mlp`)."""
+        ``quintic``, :func:`eha_ros.training.networks.make_torch_mlp`)."""
         one, mone = const(1.0), const(-1.0)
         z = sel(builder.fcmp_ordered('<', z, mone), mone, z)
         x = sel(builder.fcmp_ordered('>', z, one), one, z)
@@ -447,13 +448,12 @@ def _dnn_flows(typingctx, w1, b1, w2, b2, w3, k, s4, dp4):
     return sig, codegen
 
 
-@register_kernel('dnn')
 @njit(cache=True)
 def dnn_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
     """(Q1L, Q2L) [m^3/s], the four edges (1S, 1R, 2R, 2S) through the network ``ln G`` as
     one batch of four SIMD lanes (:func:`_dnn_flows`).
 
-    ``data = (w1, b1, w2, b2, w3, consts)`` from :func:`prepare_dnn`: the first layer
+    ``data = (w1, b1, w2, b2, w3, consts)`` from :meth:`DnnSurrogate._prepare`: the first layer
     ``(3, DNN_WIDTH)`` on the per-step features of :func:`dnn_features` (the input
     normalisation and the clearance's feature folded into ``b1``), the second layer
     ``(DNN_WIDTH, DNN_WIDTH)``, the output row ``w3`` (output normalisation folded in),
@@ -491,7 +491,7 @@ def _ga_edge(s, dp, c2, a_lam, k_turb, k_rey):
 @njit(cache=True, inline='always')
 def ga_edge_flow(s, dp, c2, a_lam, k_turb, k_rey):
     """The closed-form edge law of ``dga``, its coefficients ``[c^2, a_lam, k_turb, k_rey]``
-    prepared for one clearance ``c`` (:func:`prepare_dga`)::
+    prepared for one clearance ``c`` (:meth:`DgaSurrogate._prepare`)::
 
         h^2 = c^2 + max(s, 0)^2                     (annulus, then truncated cone)
         RL  = a_lam max(-s, 0),  a_lam = k_lam / c^n_lam   (laminar, covered length)
@@ -510,7 +510,6 @@ def ga_edge_flow(s, dp, c2, a_lam, k_turb, k_rey):
     return num / max(den, 1e-300)
 
 
-@register_kernel('dga')
 @njit(cache=True)
 def dga_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
     """(Q1L, Q2L) [m^3/s] from the closed form; ``data = (cf, consts)``, ``consts = [ps, pr]``."""
@@ -548,17 +547,6 @@ def _edge_loop(kernel, data, consts, s, dp, out):
 
 # --- preparation per wear ---------------------------------------------------------------------
 
-#: kind -> ``prepare(artefact_data, meta, params) -> kernel data``
-PREPARERS = {}
-
-
-def register_preparer(kind: str):
-    def deco(fn):
-        PREPARERS[kind] = fn
-        return fn
-    return deco
-
-
 def _ln_c_weights(axis_ln_c, c):
     """Indices and weights of cubic Lagrange interpolation in ``ln c`` (4 nodes around ``c``,
     shifted inwards at the ends; clamped to the axis)."""
@@ -575,32 +563,6 @@ def _axis_consts(exp2, log2_cells):
     """``_log_cell``'s integer constants of a :func:`log_axis`."""
     shift = 52 - log2_cells
     return [shift, (1023 + exp2) << log2_cells, (1 << shift) - 1, log2_cells]
-
-
-@register_preparer('dlut')
-def prepare_dlut(data, meta, p: PlantParams):
-    """Collapse the table ``ln G[s, |dp|, ln c]`` to ``q = G |dp|`` at the clearance of ``p``
-    (cubic Lagrange interpolation of ``ln G`` in ``ln c``: exact for the power laws of the
-    laminar and orifice limits, fourth order between them) and pack each cell's bilinear
-    coefficients contiguously (float64)."""
-    s_nodes, dp_nodes, ln_c, ln_g = data[:4]
-    g = meta['table']['grid']
-    k, w = _ln_c_weights(ln_c, p.radial_clearance_m)
-    lg = sum(w[j] * ln_g[:, :, k + j].astype(float) for j in range(4))
-    q = np.exp(lg) * dp_nodes[None, :]
-    n_s = s_nodes.size
-    cells = []
-    for side in (q[:n_s], q[n_s:]):  # open, then covered (rows at s = node, then -node)
-        q00, q01, q10, q11 = side[:-1, :-1], side[:-1, 1:], side[1:, :-1], side[1:, 1:]
-        cells.append(np.stack([q00, q01 - q00, q10 - q00, (q11 - q10) - (q01 - q00)], -1))
-    table = np.ascontiguousarray(np.concatenate(cells, axis=0)).ravel()
-    n_p = dp_nodes.size
-    ic = np.array(_axis_consts(g['s_exp2'], g['s_log2_cells']) + [n_s - 2, n_s - 1]
-                  + _axis_consts(g['dp_exp2'], g['dp_log2_cells']) + [n_p - 2, n_p - 1],
-                  dtype=np.int64)
-    fc = np.array([p.supply_pressure_pa, p.return_pressure_pa, 2.0 ** g['s_exp2'],
-                   2.0 ** g['dp_exp2'], dp_nodes[-2], 1.0 / (dp_nodes[-1] - dp_nodes[-2])])
-    return (table, ic, fc)
 
 
 def dnn_features(s_m, dp_pa, clearance_m, dp_scale_pa: float) -> np.ndarray:
@@ -621,7 +583,6 @@ def dnn_features(s_m, dp_pa, clearance_m, dp_scale_pa: float) -> np.ndarray:
 def dnn_numpy(data, s_m, dp_pa, clearance_m) -> np.ndarray:
     """Edge flow [m^3/s] of a ``dnn`` artefact's network evaluated as trained (numpy, float64,
     no folding; the reference the kernel is checked against)."""
-    from .nn import mlp_forward, split_weights
     sizes = [int(v) for v in data[0]]
     mid, half = (np.asarray(v, dtype=float) for v in data[1])
     theta = np.asarray(data[3], dtype=float)
@@ -632,59 +593,15 @@ def dnn_numpy(data, s_m, dp_pa, clearance_m) -> np.ndarray:
     return dp * np.exp(y)
 
 
-@register_preparer('dnn')
-def prepare_dnn(data, meta, p: PlantParams):
-    """Fold the input and output normalisations and the clearance's feature (constant within
-    a run) into the weights: the kernel's first layer sees the opening and pressure-drop
-    features only, its output is ``ln G`` directly.  ``data = (sizes, input_norm, output_norm,
-    theta, [dp_scale_pa])`` (:func:`.dynamic_train.build_dnn`)."""
-    from .nn import split_weights
-    sizes = [int(v) for v in data[0]]
-    arch = meta.get('architecture', {})
-    act = arch.get('activation')
-    if act != 'quintic' or sizes != [4, DNN_WIDTH, DNN_WIDTH, 1] or not arch.get('skip'):
-        raise SurrogateError(f'dnn artefact has layer widths {sizes}, activation {act!r}; the '
-                             f'kernel evaluates [4, {DNN_WIDTH}, {DNN_WIDTH}, 1], quintic, '
-                             'with the linear skip term: '
-                             'rebuild it (python -m eha_ros.surrogates.dynamic_train dnn)')
-    mid, half = (np.asarray(v, dtype=float) for v in data[1])
-    out_mid, out_half = (float(v) for v in data[2])
-    theta = np.asarray(data[3], dtype=float)
-    (w1, b1), (w2, b2), (w3, b3) = split_weights(theta[:-4], sizes)
-    skip = theta[-4:]
-    dp_scale = float(data[4][0])
-    zc = (math.log(p.radial_clearance_m) - mid[3]) / half[3]
-    w1f = w1[:3] / half[:3, None]
-    b1f = b1 - (mid[:3] / half[:3]) @ w1[:3] + zc * w1[3]
-    b3f = float(b3[0]) - float(skip[:3] @ (mid[:3] / half[:3])) + zc * float(skip[3])
-    consts = np.array([p.supply_pressure_pa, p.return_pressure_pa,
-                       out_mid + out_half * b3f, 1.0 / p.radial_clearance_m,
-                       1.0 / dp_scale, DP_MAX_PA, *(out_half * skip[:3] / half[:3])])
-    return (np.ascontiguousarray(w1f), np.ascontiguousarray(b1f), np.ascontiguousarray(w2),
-            np.ascontiguousarray(b2), np.ascontiguousarray(out_half * w3[:, 0]), consts)
-
-
-@register_preparer('dga')
-def prepare_dga(data, meta, p: PlantParams):
-    k_lam, n_lam, k_turb, k_rey = (float(v) for v in data[0])
-    c = p.radial_clearance_m
-    cf = np.array([c * c, k_lam / c ** n_lam, k_turb, k_rey])
-    return (cf, np.array([p.supply_pressure_pa, p.return_pressure_pa]))
-
-
 class DynamicSurrogate(FluidSurrogate):
     """A dynamic surrogate: the kernel gives chamber flows (module docstring); ``data`` holds
     the artefact's arrays, :meth:`prepare` the kernel's data for given parameters."""
 
-    family = 'dynamic'
+    kernel_output = 'chamber_flows'
 
     def check_params(self, p: PlantParams) -> None:
-        if self.meta.get('edge_hash') != edge_hash(p):
-            raise SurrogateError(
-                f'surrogate {self.name} was built for edge parameters '
-                f'{self.meta.get("edge_hash")} ({", ".join(EDGE_PARAMETERS)}), these are '
-                f'{edge_hash(p)}: rebuild it (python -m eha_ros.surrogates.dynamic_train) or '
-                'use the parameters it was built for')
+        check_hash(self.meta, 'edge_hash', edge_hash(p), f'surrogate {self.name}',
+                   self.rebuild, SurrogateError)
         self.check_wear(p)
 
     def check_wear(self, p: PlantParams) -> None:
@@ -710,8 +627,11 @@ class DynamicSurrogate(FluidSurrogate):
         if key not in cache:
             if len(cache) > 16:
                 cache.clear()
-            cache[key] = PREPARERS[self.meta['kind']](self.data, self.meta, p)
+            cache[key] = self._prepare(p)
         return cache[key]
+
+    def _prepare(self, p: PlantParams) -> tuple:
+        raise NotImplementedError
 
     def chamber_flows(self, xs_m, p1_pa, p2_pa, params: PlantParams | None = None):
         """(Q1L, Q2L) [m^3/s] at spool ``xs_m`` [m] and chamber pressures [Pa]
@@ -735,7 +655,6 @@ class DynamicSurrogate(FluidSurrogate):
         ``dt < 2 Vol / (Bet g)`` with ``g`` the largest conductance ``|dQ1L/dP1|`` measured on
         the surrogate (over the stroke, pressures from the vapour pressure to twice the
         supply, and within 1 kPa of supply and return where it peaks)."""
-        from eha_ros.physics.maps import spool_grid
         xs = spool_grid(41, p.spool_stroke_m)
         ps, pr = p.supply_pressure_pa, p.return_pressure_pa
         near = np.array([-1e3, -100.0, -10.0, -1.0, 0.0, 1.0, 10.0, 100.0, 1e3])
@@ -767,10 +686,82 @@ class DynamicSurrogate(FluidSurrogate):
                              '(chamber_flow), not an algebraic P12')
 
 
-def chamber_flows(xs_m, p1_pa, p2_pa, params: PlantParams | None = None):
+class DlutSurrogate(DynamicSurrogate):
+    """``dlut``: the edge table, collapsed to the run's clearance (:meth:`DlutSurrogate._prepare`)."""
+
+    def _prepare(self, p: PlantParams) -> tuple:
+        """Collapse the table ``ln G[s, |dp|, ln c]`` to ``q = G |dp|`` at the clearance of ``p``
+        (cubic Lagrange interpolation of ``ln G`` in ``ln c``: exact for the power laws of the
+        laminar and orifice limits, fourth order between them) and pack each cell's bilinear
+        coefficients contiguously (float64)."""
+        data, meta = self.data, self.meta
+        s_nodes, dp_nodes, ln_c, ln_g = data[:4]
+        g = meta['table']['grid']
+        k, w = _ln_c_weights(ln_c, p.radial_clearance_m)
+        lg = sum(w[j] * ln_g[:, :, k + j].astype(float) for j in range(4))
+        q = np.exp(lg) * dp_nodes[None, :]
+        n_s = s_nodes.size
+        cells = []
+        for side in (q[:n_s], q[n_s:]):  # open, then covered (rows at s = node, then -node)
+            q00, q01, q10, q11 = side[:-1, :-1], side[:-1, 1:], side[1:, :-1], side[1:, 1:]
+            cells.append(np.stack([q00, q01 - q00, q10 - q00, (q11 - q10) - (q01 - q00)], -1))
+        table = np.ascontiguousarray(np.concatenate(cells, axis=0)).ravel()
+        n_p = dp_nodes.size
+        ic = np.array(_axis_consts(g['s_exp2'], g['s_log2_cells']) + [n_s - 2, n_s - 1]
+                      + _axis_consts(g['dp_exp2'], g['dp_log2_cells']) + [n_p - 2, n_p - 1],
+                      dtype=np.int64)
+        fc = np.array([p.supply_pressure_pa, p.return_pressure_pa, 2.0 ** g['s_exp2'],
+                       2.0 ** g['dp_exp2'], dp_nodes[-2], 1.0 / (dp_nodes[-1] - dp_nodes[-2])])
+        return (table, ic, fc)
+
+
+class DnnSurrogate(DynamicSurrogate):
+    """``dnn``: the edge network, the clearance folded into its weights (:meth:`DnnSurrogate._prepare`)."""
+
+    def _prepare(self, p: PlantParams) -> tuple:
+        """Fold the input and output normalisations and the clearance's feature (constant within
+        a run) into the weights: the kernel's first layer sees the opening and pressure-drop
+        features only, its output is ``ln G`` directly.  ``data = (sizes, input_norm, output_norm,
+        theta, [dp_scale_pa])`` (:func:`.dynamic_train.build_dnn`)."""
+        data, meta = self.data, self.meta
+        sizes = [int(v) for v in data[0]]
+        arch = meta.get('architecture', {})
+        act = arch.get('activation')
+        if act != 'quintic' or sizes != [4, DNN_WIDTH, DNN_WIDTH, 1] or not arch.get('skip'):
+            raise SurrogateError(f'dnn artefact has layer widths {sizes}, activation {act!r}; the '
+                                 f'kernel evaluates [4, {DNN_WIDTH}, {DNN_WIDTH}, 1], quintic, '
+                                 'with the linear skip term: '
+                                 f'rebuild it with python -m {self.rebuild}')
+        mid, half = (np.asarray(v, dtype=float) for v in data[1])
+        out_mid, out_half = (float(v) for v in data[2])
+        theta = np.asarray(data[3], dtype=float)
+        (w1, b1), (w2, b2), (w3, b3) = split_weights(theta[:-4], sizes)
+        skip = theta[-4:]
+        dp_scale = float(data[4][0])
+        zc = (math.log(p.radial_clearance_m) - mid[3]) / half[3]
+        w1f = w1[:3] / half[:3, None]
+        b1f = b1 - (mid[:3] / half[:3]) @ w1[:3] + zc * w1[3]
+        b3f = float(b3[0]) - float(skip[:3] @ (mid[:3] / half[:3])) + zc * float(skip[3])
+        consts = np.array([p.supply_pressure_pa, p.return_pressure_pa,
+                           out_mid + out_half * b3f, 1.0 / p.radial_clearance_m,
+                           1.0 / dp_scale, DP_MAX_PA, *(out_half * skip[:3] / half[:3])])
+        return (np.ascontiguousarray(w1f), np.ascontiguousarray(b1f), np.ascontiguousarray(w2),
+                np.ascontiguousarray(b2), np.ascontiguousarray(out_half * w3[:, 0]), consts)
+
+
+class DgaSurrogate(DynamicSurrogate):
+    """``dga``: the designed edge formula with the clearance's terms evaluated once."""
+
+    def _prepare(self, p: PlantParams) -> tuple:
+        k_lam, n_lam, k_turb, k_rey = (float(v) for v in self.data[0])
+        c = p.radial_clearance_m
+        cf = np.array([c * c, k_lam / c ** n_lam, k_turb, k_rey])
+        return (cf, np.array([p.supply_pressure_pa, p.return_pressure_pa]))
+
+
+def hf_chamber_flows(xs_m, p1_pa, p2_pa, params: PlantParams | None = None):
     """(Q1L, Q2L) [m^3/s] of the hf model (:func:`eha_ros.physics.valve.valve_flows`),
-    vectorised, for checks against :meth:`DynamicSurrogate.chamber_flow`."""
-    from eha_ros.physics.valve import valve_flows
+    vectorised, for checks against :meth:`DynamicSurrogate.chamber_flows`."""
     p = params if params is not None else default_params()
     arrs = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (xs_m, p1_pa, p2_pa)))
     out = np.array([valve_flows(x, a, b, p) for x, a, b in zip(*(a.ravel() for a in arrs))])

@@ -13,7 +13,7 @@ Network
     large (it spends the network's resolution on the null region at the expense of the rest).
 
 Data and training
-    :mod:`.nn_train` (which databases, which maps are held out, the training algorithms).
+    :mod:`eha_ros.training.nn` (which databases, which maps are held out, the training algorithms).
 
 Inference (numpy and numba only)
     One generic numba kernel, ``mlp`` (:func:`mlp_kernel`), evaluates any artefact of this
@@ -26,9 +26,9 @@ Error metric (the reference's): the relative error in Euclidean norm over a map,
 ``||P_pred - P_true||_2 / ||P_true||_2`` with the map all spool positions x flows of one wear
 pair.
 
-Data, training and the build of the shipped artefacts are in :mod:`.nn_train`
-(``python -m eha_ros.surrogates.nn_train``, about an hour on two cores), on the shared trainer
-of :mod:`.training`.
+Data, training and the build of the shipped artefacts are in :mod:`eha_ros.training.nn`
+(``python -m eha_ros.training.nn``, about an hour on two cores), on the shared trainer
+of :mod:`eha_ros.training.networks`.
 """
 
 from __future__ import annotations
@@ -40,11 +40,11 @@ from numba import carray, njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from .base import SurrogateError, register_kernel
+from eha_ros.mlp import mlp_forward, split_weights
+from eha_ros.surrogates.base import SurrogateError
 
 __all__ = ['INPUT_NAMES', 'INPUT_UNITS', 'MAX_WIDTH', 'LINEAR', 'ASINH', 'mlp_kernel',
-           'mlp_forward', 'quintic', 'NUMPY_ACTIVATIONS', 'mlp_numpy', 'pack', 'unpack', 'split_weights', 'transform_inputs',
-           'fit_inputs', 'fit_output']
+           'mlp_numpy', 'pack', 'unpack', 'transform_inputs', 'fit_inputs', 'fit_output']
 
 #: The kernel's inputs, in order, and their units.
 INPUT_NAMES = ('xs_m', 'q_m3_s', 'overlap_m', 'clearance_m')
@@ -81,7 +81,6 @@ def _stack_buffer():
     return carray(_stack_buffer_ptr(), (2 * MAX_WIDTH,))
 
 
-@register_kernel('mlp')
 @njit(cache=True)
 def mlp_kernel(data, xs_m, q_m3_s, overlap_m, clearance_m):
     """P12 [Pa] of a packed MLP (see :func:`pack`) at one point; allocation-free.
@@ -152,24 +151,6 @@ def unpack(data) -> dict:
             'weights': split_weights(theta, sizes)}
 
 
-def split_weights(theta, sizes) -> list:
-    """``[(W, b), ...]`` of a dense network with layer widths ``sizes`` from the flat
-    ``theta``: layer by layer ``W`` (row-major, ``d_in x d_out``) then ``b``.  Raises
-    :class:`SurrogateError` when the widths do not account for ``theta`` exactly."""
-    theta = np.asarray(theta, dtype=float)
-    weights = []
-    k = 0
-    for di, do in zip(sizes[:-1], sizes[1:]):
-        w = theta[k:k + di * do].reshape(di, do)
-        k += di * do
-        weights.append((w, theta[k:k + do]))
-        k += do
-    if k != theta.size:
-        raise SurrogateError(f'{theta.size} weights for layer widths {list(sizes)} '
-                             f'(which need {k})')
-    return weights
-
-
 def pack(sizes, inputs, output, theta) -> tuple:
     """The kernel's data tuple from layer sizes ``[d_0, ..., d_L]`` (``d_L = 1``), the input
     table ``(d_0, 5)``, the output normalisation ``[mid, half]`` and the flat weights."""
@@ -202,29 +183,6 @@ def transform_inputs(inputs, raw):
     for i, (src, kind, scale, mid, half) in enumerate(inputs):
         z[:, i] = (_transform(raw[:, int(src)] / scale, kind) - mid) / half
     return z
-
-
-def quintic(z):
-    """The ``quintic`` hidden activation (:data:`eha_ros.surrogates.training.ACTIVATIONS`):
-    ``x (15 - 10 x^2 + 3 x^4) / 8`` on ``x = clip(z, -1, 1)`` (numpy)."""
-    x = np.clip(z, -1.0, 1.0)
-    return x * (1.875 + x * x * (-1.25 + 0.375 * x * x))
-
-
-#: Hidden activations of :func:`mlp_forward` by name.
-NUMPY_ACTIVATIONS = {'tanh': np.tanh, 'quintic': quintic}
-
-
-def mlp_forward(weights, h, activation: str = 'tanh'):
-    """Numpy forward pass of an MLP on normalised inputs ``h`` ``(N, d_0)``: ``weights`` a
-    list of ``(W (d_in, d_out), b)``, the hidden ``activation`` (:data:`NUMPY_ACTIVATIONS`)
-    on every layer but the last (linear)."""
-    act = NUMPY_ACTIVATIONS[activation]
-    for n, (w, b) in enumerate(weights):
-        h = h @ w + b
-        if n < len(weights) - 1:
-            h = act(h)
-    return h
 
 
 def mlp_numpy(data, xs_m, q_m3_s, overlap_m=0.0, clearance_m=0.0):

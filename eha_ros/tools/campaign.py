@@ -11,7 +11,7 @@ Figures 6.4-6.16).
 
 The surrogate comparison (``--compare-models``, default every shipped surrogate: the dynamic
 family and the reference's algebraic ``lut``, ``ga``, ``nn``, ``nn2``) is made physics-only
-(:mod:`eha_ros.surrogates.inloop`), where noise and perturbations can be controlled: noise off
+(:mod:`eha_ros.evaluation`), where noise and perturbations can be controlled: noise off
 against the yardstick (hf at half the step and with the discharge coefficient +-0.1 %), and
 with noise over ``--seeds`` seeds against hf's own seed-to-seed spread; plots in
 ``comparison/`` show the yardstick runs beside the models.
@@ -65,8 +65,8 @@ HEALTH_PERIOD_S = 0.1
 
 
 def available_models(models):
-    from eha_ros.surrogates.base import models_dir
-    return [m for m in models if m == 'hf' or (models_dir() / f'{m}.npz').is_file()]
+    from eha_ros.artefacts import models_dir
+    return [m for m in models if m == 'hf' or (models_dir('surrogates') / f'{m}.npz').is_file()]
 
 
 #: Models run through the graph by default: hf and the recommended surrogate plant.
@@ -122,7 +122,7 @@ def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=GRAPH_MODELS,
         raise
     from eha_ros.physics import load_params
     nominal = load_params()
-    from eha_ros.surrogates.monitor import ITEMS
+    from eha_ros.health.monitor import ITEMS
     valve_results = {}
     for valve in valve_tests:
         try:
@@ -202,15 +202,15 @@ def _finish_comparison(proc, folder: Path) -> dict:
 
 
 def _compare(folder: Path, scenarios, models, seeds, progress, seed_models=None) -> dict:
-    """Physics-only comparison of ``models`` with hf (:mod:`eha_ros.surrogates.inloop`), noise
+    """Physics-only comparison of ``models`` with hf (:mod:`eha_ros.evaluation`), noise
     off against the yardstick and, for ``seed_models`` (default all), with noise over
     ``seeds`` seeds; one plot per scenario."""
     if not models:
         return {}
     from eha_ros.physics import load_params
     from eha_ros.physics.params import replace
-    from eha_ros.surrogates.base import load_surrogate
-    from eha_ros.surrogates.inloop import noise_free, summarise, with_noise
+    from eha_ros.surrogates.registry import load_surrogate
+    from eha_ros.evaluation import noise_free, summarise, with_noise
     folder.mkdir(exist_ok=True)
     base = load_params()
     sur = {m: load_surrogate(m, base) for m in models}

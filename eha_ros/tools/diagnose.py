@@ -1,7 +1,7 @@
 """``eha-diagnose FILE.mcap``: the health monitor's estimates, offline, from a recording.
 
 Replays the recording's ``/eha/state`` through the health monitor's own logic
-(:class:`eha_ros.surrogates.monitor.MonitorCore`, the same code the ``health_monitor`` node
+(:class:`eha_ros.health.monitor.MonitorCore`, the same code the ``health_monitor`` node
 runs) and prints every monitored parameter under the plant's parameter names
 (``radial_clearance_m``, ``overlap_supply_m``, ``demagnetisation``, ``filter_clogging``,
 ``spool_static_friction_n``, ``jack_static_friction_n``, ``offset_a``) with its standard
@@ -35,8 +35,8 @@ from eha_ros.graph import (LEVEL_NAMES, STATUS_PREFLIGHT, STATUS_VALVE_TEST, TOP
 from eha_ros.physics import ParameterError, load_params
 from eha_ros.recording.arrays import load_for_tool
 from eha_ros.recording.definitions import RecordingError
-from eha_ros.surrogates.health import HealthThresholds
-from eha_ros.surrogates.monitor import ITEMS, MonitorCore
+from eha_ros.health.thresholds import HealthThresholds
+from eha_ros.health.monitor import ITEMS, MonitorCore
 
 METHODS = ('auto', 'test', 'network', 'preflight', 'steady')
 _STATE_FIELDS = ('status', 'sim_time_s', 'spool_position_m', 'load_flow_m3_s', 'p12_pa',

@@ -19,7 +19,7 @@ Error metric (the reference's, :func:`.base.relative_error`): the relative error
 Euclidean norm over a map, ``||P_pred - P_true||_2 / ||P_true||_2`` with the map all spool
 positions x flows of one wear pair.
 
-Build: ``python -m eha_ros.surrogates.nn_train`` (:func:`build_artefacts`; about an hour on two
+Build: ``python -m eha_ros.training.nn`` (:func:`build_artefacts`; about an hour on two
 cores).
 """
 
@@ -31,17 +31,15 @@ from pathlib import Path
 
 import numpy as np
 
+from eha_ros.artefacts import models_dir, save_artefact
 from eha_ros.physics import PlantParams, default_params
-from eha_ros.physics.maps import transient_map
+from eha_ros.physics.maps import fluid_hash, transient_map
+from eha_ros.surrogates.nn import (ASINH, INPUT_NAMES, INPUT_UNITS, SPOOL_GRID_DENSITY,
+                                   fit_inputs, fit_output, mlp_numpy, pack, transform_inputs)
+from eha_ros.training.database import Database, get_database, heldout_maps, map_errors
+from eha_ros.training.networks import fit_network, map_split
 
-from .base import map_errors as base_map_errors
-from .base import models_dir, save_artefact
-from .database import Database, fluid_hash, get_database, heldout_maps
-from .nn import (ASINH, INPUT_NAMES, INPUT_UNITS, SPOOL_GRID_DENSITY, fit_inputs, fit_output,
-                 mlp_numpy, pack, transform_inputs)
-from .training import fit_network, map_split
-
-__all__ = ['map_errors', 'db_maps', 'train_fluid_network', 'build_artefacts', 'NN_SETTINGS',
+__all__ = ['network_map_errors', 'db_maps', 'train_fluid_network', 'build_artefacts', 'NN_SETTINGS',
            'NN2_SETTINGS']
 
 
@@ -64,10 +62,10 @@ def _points(db: Database, pairs, weights: bool = False):
     return np.concatenate(raws), np.concatenate(ys)
 
 
-def map_errors(data, maps) -> np.ndarray:
+def network_map_errors(data, maps) -> np.ndarray:
     """Relative error in Euclidean norm (:func:`.base.relative_error`) of each map of ``maps``
     (see :func:`.database.heldout_maps`) for the packed network ``data``."""
-    return base_map_errors(lambda *a: mlp_numpy(data, *a), maps)
+    return map_errors(lambda *a: mlp_numpy(data, *a), maps)
 
 
 def db_maps(db: Database, pairs):
@@ -186,8 +184,8 @@ def train_fluid_network(*, n_inputs: int = 4, settings: dict | None = None,
             settings=st[alg], threads=threads,
             w_tr=w_tr if st['map_weighting'] else None,
             w_val=w_val if st['map_weighting'] else None)
-        errs = {k: _summary(map_errors(data, v)) for k, v in eval_sets.items()}
-        val_err = _summary(map_errors(data, val_maps))
+        errs = {k: _summary(network_map_errors(data, v)) for k, v in eval_sets.items()}
+        val_err = _summary(network_map_errors(data, val_maps))
         results[alg] = {'data': data, 'hist': hist, 'wall_s': wall, 'errors': errs,
                         'val': val_err}
         if verbose:
@@ -247,7 +245,7 @@ def build_artefacts(params: PlantParams | None = None, out_dir: Path | None = No
                     threads: int = 2, verbose: bool = False) -> list[Path]:
     """Train and save ``nn.npz`` (4 inputs) and ``nn2.npz`` (2 inputs) in
     :func:`models_dir` (or ``out_dir``); returns their paths."""
-    out = Path(out_dir) if out_dir is not None else models_dir()
+    out = Path(out_dir) if out_dir is not None else models_dir('surrogates')
     paths = []
     for name, n_in in (('nn', 4), ('nn2', 2)):
         data, meta = train_fluid_network(n_inputs=n_in, params=params, threads=threads,

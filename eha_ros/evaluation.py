@@ -37,7 +37,7 @@ from eha_ros.graph import DYNAMIC_MODELS
 from eha_ros.physics import simulate
 from eha_ros.physics.params import replace
 
-from .base import relative_error
+from eha_ros.surrogates.base import relative_error
 
 #: The cases beyond the reference's nine: a large signal and a chirp.
 EXTRA_SCENARIOS = ('step_1mm', 'chirp_0p1')

@@ -28,34 +28,21 @@ from pathlib import Path
 
 import numpy as np
 
+from eha_ros.artefacts import ArtefactError
 from eha_ros.physics import PlantParams, default_params, params_hash
-from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
+from eha_ros.surrogates.base import relative_error
+from eha_ros.physics.maps import (FLOW_MAX_M3_S, WEAR_RANGES, fluid_hash, spool_grid,
+                                  transient_map)
 
-__all__ = ['DatabaseSpec', 'Database', 'DATABASES', 'FLUID_PARAMETERS', 'fluid_hash',
-           'build_database', 'load_database', 'cache_dir', 'get_database', 'DatabaseError',
+__all__ = ['DatabaseSpec', 'Database', 'DATABASES', 'build_database', 'load_database', 'cache_dir', 'get_database', 'DatabaseError',
            'random_wear', 'maps_at', 'heldout_maps']
 
-#: Physics parameters the fluid-dynamic block (and so every map) depends on.  Overlap and
-#: clearance are inputs of the maps and are left out.
-FLUID_PARAMETERS = (
-    'supply_pressure_pa', 'return_pressure_pa', 'vapour_pressure_pa', 'fluid_density_kg_m3',
-    'fluid_kinematic_viscosity_m2_s', 'bulk_modulus_pa', 'port_width_m', 'eccentricity_ratio',
-    'discharge_coefficient', 'cd_model', 'critical_flow_number', 'valve_degradation',
-    'map_volume_m3', 'leakage_coeff_m3_s_pa', 'spool_stroke_m')
-
-#: Flow range [m^3/s] of the maps: about 40 % of the valve's no-load flow at full stroke.
-FLOW_MAX_M3_S = 6e-5
 #: Narrower flow range of DB3, around the flows of small commands.
 FLOW_MAX_NARROW_M3_S = 1.5e-5
 
 
-class DatabaseError(ValueError):
+class DatabaseError(ArtefactError):
     """A database file is missing, corrupt, or was built for other physics parameters."""
-
-
-def fluid_hash(p: PlantParams) -> str:
-    """Hash of the parameters the maps depend on."""
-    return params_hash(p, FLUID_PARAMETERS)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -302,3 +289,8 @@ def heldout_maps(n_maps: int = 1, *, seed: int = 0, params: PlantParams | None =
         q_m3_s = (np.sort(rng.uniform(-q_max_m3_s, q_max_m3_s, n_q)) if random_flows
                   else np.linspace(-q_max_m3_s, q_max_m3_s, n_q))
     return maps_at(np.asarray(xs_m, dtype=float), np.asarray(q_m3_s, dtype=float), lap, clr, p)
+def map_errors(model, maps) -> np.ndarray:
+    """:func:`relative_error` of each map: ``model(xs, q, overlap, clearance)`` broadcasts
+    (e.g. :meth:`FluidSurrogate.p12`); ``maps`` as :func:`.database.heldout_maps` returns."""
+    return np.array([relative_error(model(xs[:, None], q[None, :], lap, clr), p12)
+                     for xs, q, lap, clr, p12 in maps])

@@ -1,5 +1,5 @@
 """Training of the project's networks (torch, imported inside the functions only): the fluid
-surrogates of :mod:`.nn_train`, the dynamic edge network of :mod:`.dynamic` and the
+surrogates of :mod:`eha_ros.training.nn`, the dynamic edge network of :mod:`.dynamic` and the
 wear-diagnosis network of :mod:`.diagnostics` all train through :func:`fit_network`.
 
 Model
@@ -165,7 +165,7 @@ def make_torch_mlp(*, d_in: int, d_hidden: list, d_out: int = 1, seed: int = 0,
 
 def torch_from_data(data):
     """Rebuild the torch module of a packed MLP (for checks against the exported kernel)."""
-    from .nn import unpack
+    from eha_ros.surrogates.nn import unpack
 
     torch = _torch()
     u = unpack(data)

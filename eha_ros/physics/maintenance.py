@@ -190,7 +190,7 @@ def run_preflight(params: PlantParams, seed: int = 0, tick_s: float = 1e-3,
                   dt_s: float = 1e-6) -> dict:
     """The pre-flight check on the plant alone, as the plant node runs it tick by tick: arrays
     (one value per tick, the state at the tick's end) of ``command_a`` and
-    :data:`PREFLIGHT_SIGNALS`.  Training data for :mod:`eha_ros.surrogates.faults`."""
+    :data:`PREFLIGHT_SIGNALS`.  Training data for :mod:`eha_ros.health.preflight`."""
     from .plant import Plant
     check = PreflightCheck(int(round(tick_s * 1e9)), params.current_limit_a)
     plant = Plant(params, dt_s=dt_s, seed=seed)

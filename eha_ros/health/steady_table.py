@@ -15,22 +15,23 @@ Axes
     In service on the reference's scenarios the spool stays within +-23 um and the flow within
     +-10 cm^3/s; samples outside the table are not used.
 
-Build: ``python -m eha_ros.surrogates.steady_table`` (about 2 min on 2 cores) writes
+Build: ``python -m eha_ros.training.steady_table`` (about 2 min on 2 cores) writes
 ``models/steady_table.npz`` with the hash of the fluid parameters it was built for.
 """
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 
+from eha_ros.artefacts import check_hash, load_artefact, models_dir
 from eha_ros.physics import PlantParams, default_params
-from eha_ros.physics.maps import WEAR_RANGES
+from eha_ros.physics.maps import fluid_hash
 
-__all__ = ['SteadyTable', 'build_steady_table', 'load_steady_table', 'TABLE_FILE']
+__all__ = ['SteadyTable', 'load_steady_table', 'TABLE_FILE']
 
 TABLE_FILE = 'steady_table.npz'
+#: ``python -m`` argument that rebuilds it
+REBUILD = 'eha_ros.training.steady_table'
 
 #: Grid steps of the wear axes [m].
 OVERLAP_STEP_M = 0.5e-6
@@ -75,49 +76,10 @@ class SteadyTable:
                 + (1 - u) * v * t[:, :, i, j + 1] + u * v * t[:, :, i + 1, j + 1])
 
 
-def build_steady_table(params: PlantParams | None = None, progress=print) -> SteadyTable:
-    """Solve the steady state at every node (numba, all cores)."""
-    from eha_ros.physics.maps import steady_map
-    p = params if params is not None else default_params()
-    (l0, l1), (c0, c1) = WEAR_RANGES['overlap_m'], WEAR_RANGES['radial_clearance_m']
-    laps = np.round(np.arange(l0, l1 + 1e-12, OVERLAP_STEP_M), 12)
-    clrs = np.round(np.arange(c0, c1 + 1e-12, CLEARANCE_STEP_M), 12)
-    xs = _axis(XS_MAX_M, XS_SCALE_M, N_XS)
-    q = _axis(Q_MAX_M3_S, Q_SCALE_M3_S, N_Q)
-    xg, qg = np.meshgrid(xs, q, indexing='ij')
-    out = np.empty((laps.size, clrs.size, xs.size, q.size))
-    t0 = time.perf_counter()
-    for a, lap in enumerate(laps):
-        for b, clr in enumerate(clrs):
-            out[a, b] = steady_map(xg, qg, lap, clr, params=p)['p12_pa']
-        progress(f'overlap {lap * 1e6:5.2f} um done ({time.perf_counter() - t0:.0f} s)')
-    return SteadyTable(laps, clrs, xs, q, out)
-
-
 def load_steady_table(params: PlantParams | None = None) -> SteadyTable:
     """The shipped table, checked against the fluid parameters of ``params``."""
-    from .base import SurrogateError, load_artefact, models_dir
-    from .database import fluid_hash
     p = params if params is not None else default_params()
-    path = models_dir() / TABLE_FILE
-    data, meta = load_artefact(path)
-    if meta.get('fluid_hash') != fluid_hash(p):
-        raise SurrogateError(f'{path}: built for other fluid parameters than these: rebuild '
-                             'it (python -m eha_ros.surrogates.steady_table)')
+    path = models_dir('health') / TABLE_FILE
+    data, meta = load_artefact(path, REBUILD)
+    check_hash(meta, 'fluid_hash', fluid_hash(p), str(path), REBUILD)
     return SteadyTable(*data[:5], meta=meta)
-
-
-def main():
-    from .base import models_dir, save_artefact
-    from .database import fluid_hash
-    p = default_params()
-    t0 = time.perf_counter()
-    t = build_steady_table(p)
-    save_artefact(models_dir() / TABLE_FILE, (t.overlap_m, t.clearance_m, t.xs_m, t.q_m3_s,
-                                               t.p12_pa.astype(np.float32)),
-        {'kind': 'steady_table', 'fluid_hash': fluid_hash(p),
-         'build_s': round(time.perf_counter() - t0, 1)})
-
-
-if __name__ == '__main__':
-    main()

@@ -12,7 +12,7 @@ Error metric
     largest flow at that spool position, since a chamber flow crosses zero at its balance
     pressure).
 
-Build: ``python -m eha_ros.surrogates.dynamic_train [dlut dga dnn]`` (about 10 s, 2 min and 12
+Build: ``python -m eha_ros.training.dynamic [dlut dga dnn]`` (about 10 s, 2 min and 12
 min on two cores; ``dnn`` trains for at most ``DNN_SETTINGS['lm']['time_limit_s']``);
 ``bench/surrogates_dynamic.py`` prints the figures.
 """
@@ -29,10 +29,11 @@ import numpy as np
 
 from eha_ros.physics import PlantParams, default_params
 
-from .base import load_surrogate, models_dir, save_artefact
-from .dynamic import (DNN_WIDTH, DP_MAX_PA, EDGE_PARAMETERS, GA_GENES, dnn_features,
+from eha_ros.artefacts import models_dir, save_artefact
+from eha_ros.surrogates.registry import load_surrogate
+from eha_ros.surrogates.dynamic import (DNN_WIDTH, DP_MAX_PA, EDGE_PARAMETERS, GA_GENES, dnn_features,
                       edge_conductance, edge_flows, edge_hash, log_axis, valid_range)
-from .nn import fit_output
+from eha_ros.surrogates.nn import fit_output
 
 __all__ = ['DLUT_GRID', 'DNN_SETTINGS', 'DGA_SETTINGS', 'sample_points', 'loop_points',
            'edge_errors', 'chamber_errors', 'build_dlut', 'build_dnn', 'build_dga', 'build_all']
@@ -122,7 +123,7 @@ def chamber_errors(surrogate, params: PlantParams | None = None, wear=None, n_xs
     from eha_ros.physics.maps import spool_grid
     from eha_ros.physics.params import replace
 
-    from .dynamic import chamber_flows
+    from eha_ros.surrogates.dynamic import hf_chamber_flows
     p = params if params is not None else default_params()
     wear = wear if wear is not None else [(p.overlap_supply_m, p.radial_clearance_m),
                                          (-1.3e-6, 1.7e-6), (4.1e-6, 4.6e-6)]
@@ -132,7 +133,7 @@ def chamber_errors(surrogate, params: PlantParams | None = None, wear=None, n_xs
     for lap, clr in wear:
         pw = replace(p, overlap_supply_m=lap, overlap_return_m=lap, radial_clearance_m=clr)
         q = surrogate.chamber_flow(xs[:, None], pp[None, :], pw)
-        q1, _ = chamber_flows(xs[:, None], pp[None, :], pp[None, :], pw)
+        q1, _ = hf_chamber_flows(xs[:, None], pp[None, :], pp[None, :], pw)
         scale = np.max(np.abs(q1), axis=1, keepdims=True)
         e = np.abs(q - q1) / scale
         out[f'overlap={lap:.3g},clearance={clr:.3g}'] = {'max': float(e.max()),
@@ -252,7 +253,7 @@ def build_dga(params: PlantParams | None = None, settings: dict | None = None):
     comparison; ships the GA's coefficients.  Returns ``(data, meta)``."""
     from scipy.optimize import least_squares
 
-    from .ga import GASettings, evolve
+    from eha_ros.training.ga import GASettings, evolve
     p = params if params is not None else default_params()
     st = dict(DGA_SETTINGS, **(settings or {}))
     rng = np.random.default_rng(st['seed'])
@@ -320,7 +321,7 @@ def build_dnn(params: PlantParams | None = None, settings: dict | None = None,
     logarithmic; quintic activation and a linear skip term, :func:`.training.fit_network`)
     on points drawn over the validity (:func:`sample_points`) and where the loop lives
     (:func:`loop_points`); returns ``(data, meta)``."""
-    from .training import fit_network, minmax
+    from eha_ros.training.networks import fit_network, minmax
     p = params if params is not None else default_params()
     st = dict(DNN_SETTINGS, **(settings or {}))
     rng = np.random.default_rng(st['seed'])
@@ -391,7 +392,7 @@ def build_all(names=('dlut', 'dga', 'dnn'), params: PlantParams | None = None,
               out_dir: Path | None = None, verbose: bool = False) -> list[Path]:
     """Build, measure (edge and chamber errors into the meta) and save the artefacts."""
     p = params if params is not None else default_params()
-    out = Path(out_dir) if out_dir is not None else models_dir()
+    out = Path(out_dir) if out_dir is not None else models_dir('surrogates')
     paths = []
     for name in names:
         data, meta = BUILDERS[name](p)

@@ -32,10 +32,12 @@ import numpy as np
 
 from eha_ros.graph import LEVEL_NAMES, STATUS_DIVERGED, STATUS_PREFLIGHT, STATUS_VALVE_TEST
 from eha_ros.physics.params import ParameterError, PlantParams
-from eha_ros.physics.valve_test import MAP_POINTS, PREFLIGHT_SIGNALS
+from eha_ros.physics.maintenance import MAP_POINTS, PREFLIGHT_SIGNALS
 
-from .health import (ERROR, OK, WARN, HealthEstimate, HealthThresholds, InServiceEstimator,
-                     ValveTestEstimator, classify, classify_fault)
+from eha_ros.health.posterior import InServiceEstimator
+from eha_ros.health.thresholds import (ERROR, OK, WARN, HealthEstimate, HealthThresholds,
+                                       classify, classify_fault)
+from eha_ros.health.valve_test import ValveTestEstimator
 
 __all__ = ['ITEMS', 'ITEM_UNITS', 'Item', 'HealthReport', 'Job', 'MonitorCore',
            'STATUS_DIVERGED', 'STATUS_VALVE_TEST', 'STATUS_PREFLIGHT', 'LEVEL_NAMES']
@@ -162,7 +164,7 @@ class MonitorCore:
         self.valve_test = valve_test
         if faults == 'default':
             try:
-                from .faults import load_faults
+                from eha_ros.health.preflight import load_faults
                 faults = load_faults()
             except (OSError, ValueError) as exc:
                 faults, self.faults_error = None, ' '.join(str(exc).split())
@@ -274,7 +276,7 @@ class MonitorCore:
                             est.pressure_residual_pa, est.samples_used, items)
 
     def _preflight_report(self, job: Job) -> HealthReport:
-        from .faults import FAULTS
+        from eha_ros.health.preflight import FAULTS
         t = job.stamp_ns
         n, rec = job.data
         method = 'preflight-network'
@@ -282,7 +284,7 @@ class MonitorCore:
             return HealthReport(t, 'preflight', method, ERROR,
                                 f'no estimate: the pre-flight network is not usable: '
                                 f'{self.faults_error}')
-        from eha_ros.physics.valve_test import PREFLIGHT_S, preflight_command
+        from eha_ros.physics.maintenance import PREFLIGHT_S, preflight_command
         expected = int(round(PREFLIGHT_S / 1e-3))
         if n != expected or len(rec) != n:
             return HealthReport(t, 'preflight', method, ERROR,

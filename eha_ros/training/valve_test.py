@@ -1,23 +1,4 @@
-"""Wear diagnosis from pressure curves (the reference's section 5.4.3): a network that reads
-one characteristic curve - the 133 values of P12 along the spool grid at one imposed flow - and
-that flow, and returns the radial clearance and the overlap of the valve.
-
-Network
-    134 inputs (133 pressures [Pa] and the flow [m^3/s]), each min-max normalised to [-1, 1]
-    on the training split; tanh hidden layers; 2 linear outputs, the clearance and the overlap,
-    min-max normalised over the training split (the wear ranges of DB4).  The shipped default
-    (``diag.npz``, :data:`DIAG_SETTINGS`) has two hidden layers of 64 trained by Adam then
-    L-BFGS; the reference's network (one hidden layer of 10, Levenberg-Marquardt,
-    :data:`DIAG_THESIS_SETTINGS`) is trained alongside and its held-out errors are recorded in
-    the artefact's metadata (``alternatives``): the default's per-map errors on clean curves
-    are two to five times smaller, with 1 % noise about 1.5 times.
-
-Symmetry
-    With equal supply and return overlaps the valve is antisymmetric,
-    ``P12(-XS, -Q) = -P12(XS, Q)``, so a curve at a negative flow is mapped onto the positive
-    flow (:func:`canonical_curves`) before it reaches the network, which is trained on the
-    non-negative flows only.  This halves what the network has to learn; it cut the held-out
-    per-map errors of the reference's network by a factor of four to five.
+"""Train the valve-test network (:mod:`eha_ros.health.valve_test`) and write ``diag.npz``.
 
 Training (torch, imported inside the training functions)
     On DB4 (900 maps x 15 flows), whole maps held out: every curve of a held-out
@@ -30,43 +11,28 @@ Noise model
     pressure's magnitude (``noise='relative'``, the default).  ``noise='rms'`` instead adds 1 %
     of the curve's RMS to every point (harsher near null, where P12 is small).
 
-Per-map estimate
-    A map (the curves at several flows of one valve) gives one estimate per curve; they are
-    combined by their median, and their standard deviation is the spread reported as the
-    uncertainty.
+Errors are reported in % of each parameter's range (:data:`WEAR_RANGES`).
 
-Errors are reported in % of each parameter's range (:data:`WEAR_RANGES`).  Inference is numpy
-only (:func:`estimate_wear`, :func:`estimate_wear_batch`, :func:`estimate_wear_map`).
-
-Build: ``python -m eha_ros.surrogates.diagnostics`` (:func:`build_artefact`).
+Build: ``python -m eha_ros.training.valve_test`` (:func:`build_artefact`).
 """
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 import json
 from pathlib import Path
 
 import numpy as np
 
+from eha_ros.artefacts import models_dir, save_artefact
+from eha_ros.health.valve_test import (OUTPUT_NAMES, OUTPUT_UNITS, DiagnosticModel,
+                                       _default_model, _load_cached, canonical_curves)
 from eha_ros.physics import PlantParams, default_params
-from eha_ros.physics.maps import WEAR_RANGES
+from eha_ros.physics.maps import WEAR_RANGES, fluid_hash
+from eha_ros.training.database import Database, get_database
+from eha_ros.training.networks import fit_network, map_split, minmax
 
-from .base import SurrogateError, load_artefact, models_dir, save_artefact
-from .database import Database, fluid_hash, get_database
-from .nn import mlp_forward, split_weights
-from .training import map_split, minmax
-
-__all__ = ['WearEstimate', 'DiagnosticModel', 'load_diagnostic', 'estimate_wear',
-           'estimate_wear_batch', 'estimate_wear_map', 'add_noise', 'curves_from_maps',
-           'wear_errors', 'train_diagnostic', 'build_artefact', 'DIAG_SETTINGS',
-           'DIAG_THESIS_SETTINGS', 'canonical_curves',
-           'OUTPUT_NAMES', 'OUTPUT_UNITS']
-
-#: The network's outputs, in order (the reference's order: clearance, then overlap).
-OUTPUT_NAMES = ('radial_clearance_m', 'overlap_m')
-OUTPUT_UNITS = ('m', 'm')
+__all__ = ['DIAG_SETTINGS', 'DIAG_THESIS_SETTINGS', 'add_noise', 'curves_from_maps',
+           'wear_errors', 'train_diagnostic', 'build_artefact']
 
 #: Settings of the shipped diagnostic network: two hidden layers of 64, Adam then L-BFGS.
 #: Stopping is by step counts (the time limit is only a safeguard): a build is reproducible.
@@ -80,167 +46,10 @@ DIAG_SETTINGS = {
            'time_limit_s': 3600.0},
 }
 
+
 #: The reference's configuration (one hidden layer of 10, Levenberg-Marquardt), trained
 #: alongside for comparison; its errors are recorded in the shipped artefact's metadata.
 DIAG_THESIS_SETTINGS = {'hidden': [10], 'algorithm': 'lm'}
-
-
-@dataclasses.dataclass
-class WearEstimate:
-    """Wear of one valve from a map: combined estimate and spread over its curves."""
-
-    radial_clearance_m: float
-    overlap_m: float
-    radial_clearance_std_m: float
-    overlap_std_m: float
-    curves_used: int
-    per_curve_clearance_m: np.ndarray
-    per_curve_overlap_m: np.ndarray
-
-
-@dataclasses.dataclass
-class DiagnosticModel:
-    """A loaded diagnostic network: spool grid, normalisations, weights and metadata."""
-
-    xs_m: np.ndarray
-    in_norm: np.ndarray     # (2, 134): mid, half
-    out_norm: np.ndarray    # (2, 2): mid, half of (clearance, overlap)
-    weights: list           # [(W (d_in, d_out), b (d_out,)), ...]
-    meta: dict
-
-    @property
-    def symmetric(self) -> bool:
-        return bool(self.meta.get('symmetric', False))
-
-    def forward(self, p12_curves_pa, q_m3_s):
-        """``(n, 2)`` (clearance, overlap) [m] for curves ``(n, 133)`` [Pa] and flows ``(n,)``."""
-        if self.symmetric:
-            p12_curves_pa, q_m3_s = canonical_curves(p12_curves_pa, q_m3_s)
-        x = np.concatenate([p12_curves_pa, q_m3_s[:, None]], axis=1)
-        h = mlp_forward(self.weights, (x - self.in_norm[0]) / self.in_norm[1])
-        return self.out_norm[0] + self.out_norm[1] * h
-
-    def data(self) -> tuple:
-        """The arrays as saved: ``(layout, xs_m, in_norm, out_norm, theta)``."""
-        sizes = [self.in_norm.shape[1]] + [b.size for _, b in self.weights]
-        theta = np.concatenate([np.concatenate([w.ravel(), b]) for w, b in self.weights])
-        return (np.array(sizes, dtype=float), self.xs_m, self.in_norm, self.out_norm, theta)
-
-    @classmethod
-    def from_data(cls, data, meta) -> 'DiagnosticModel':
-        layout, xs, in_norm, out_norm, theta = (np.asarray(a, dtype=float) for a in data)
-        sizes = [int(s) for s in layout]
-        try:
-            weights = split_weights(theta, sizes)
-        except SurrogateError as exc:
-            raise SurrogateError(f'diagnostic artefact: {exc}') from None
-        if in_norm.shape != (2, sizes[0]) or xs.size + 1 != sizes[0]:
-            raise SurrogateError('diagnostic artefact: normalisation or spool grid do not '
-                                 'match the layer widths')
-        return cls(xs, in_norm, out_norm, weights, meta)
-
-
-def load_diagnostic(params: PlantParams | None = None, path: Path | None = None,
-                    ) -> DiagnosticModel:
-    """Load the shipped diagnostic network (``models/diag.npz``) and check it was built for
-    ``params`` (default: the nominal parameters); :class:`SurrogateError` otherwise."""
-    p = params if params is not None else default_params()
-    path = Path(path) if path is not None else models_dir() / 'diag.npz'
-    model = _load_cached(str(path.resolve()), path.stat().st_mtime_ns if path.is_file() else 0)
-    if model.meta.get('fluid_hash') != fluid_hash(p):
-        raise SurrogateError(
-            f'diagnostic network {path.name} was built for fluid parameters '
-            f'{model.meta.get("fluid_hash")}, these are {fluid_hash(p)}: retrain it '
-            '(python -m eha_ros.surrogates.diagnostics) or use the parameters it was built for')
-    return model
-
-
-@functools.lru_cache(maxsize=4)
-def _load_cached(path: str, mtime_ns: int) -> DiagnosticModel:
-    data, meta = load_artefact(Path(path))
-    if meta.get('kind') != 'diag':
-        raise SurrogateError(f'{path}: not a diagnostic network (kind {meta.get("kind")!r})')
-    return DiagnosticModel.from_data(data, meta)
-
-
-@functools.lru_cache(maxsize=1)
-def _default_model() -> DiagnosticModel:
-    """The shipped network for the nominal parameters, loaded and checked once."""
-    return load_diagnostic()
-
-
-def _curves(model: DiagnosticModel, p12, xs_m):
-    p12 = np.atleast_2d(np.asarray(p12, dtype=float))
-    if xs_m is not None:
-        xs_m = np.asarray(xs_m, dtype=float)
-        p12 = np.stack([np.interp(model.xs_m, xs_m, c) for c in p12])
-    if p12.shape[1] != model.xs_m.size:
-        raise ValueError(f'a curve holds {model.xs_m.size} pressures on the spool grid '
-                         f'(got {p12.shape[1]}); pass xs_m to resample another grid')
-    if not np.all(np.isfinite(p12)):
-        raise ValueError('pressures must be finite')
-    return p12
-
-
-def estimate_wear_batch(p12_curves_pa, q_m3_s, xs_m=None, model: DiagnosticModel | None = None,
-                        ):
-    """Clearance [m] and overlap [m] arrays, one per curve.
-
-    Parameters
-    ----------
-    p12_curves_pa : array (n, 133)
-        P12 [Pa] along the model's spool grid (:func:`eha_ros.physics.maps.spool_grid`), or
-        along ``xs_m`` (then linearly resampled).
-    q_m3_s : array (n,) or float
-        Imposed flow [m^3/s] of each curve.
-    """
-    m = model if model is not None else _default_model()
-    p12 = _curves(m, p12_curves_pa, xs_m)
-    q = np.broadcast_to(np.asarray(q_m3_s, dtype=float), (p12.shape[0],))
-    out = m.forward(p12, np.ascontiguousarray(q))
-    return out[:, 0], out[:, 1]
-
-
-def estimate_wear(p12_curve_pa, q_m3_s: float, xs_m=None,
-                  model: DiagnosticModel | None = None) -> tuple[float, float]:
-    """``(radial_clearance_m, overlap_m)`` from one curve (133 P12 values [Pa] along the spool
-    grid) at flow ``q_m3_s`` [m^3/s]; ``model`` defaults to the shipped network (loaded and
-    checked against the nominal parameters on first use)."""
-    c, o = estimate_wear_batch(np.asarray(p12_curve_pa, dtype=float)[None, :], [q_m3_s],
-                               xs_m=xs_m, model=model)
-    return float(c[0]), float(o[0])
-
-
-def estimate_wear_map(p12_map_pa, q_m3_s, xs_m=None, model: DiagnosticModel | None = None,
-                      combine: str = 'median') -> WearEstimate:
-    """Wear from a map ``(133, n_q)`` [Pa] at flows ``(n_q,)`` [m^3/s]: the per-curve
-    estimates combined by ``combine`` (``'median'`` or ``'mean'``), with their standard
-    deviation as the spread."""
-    p12 = np.asarray(p12_map_pa, dtype=float)
-    q = np.asarray(q_m3_s, dtype=float).ravel()
-    if p12.ndim != 2 or p12.shape[1] != q.size:
-        raise ValueError('p12_map_pa must be (n_xs, n_q) with one flow per column')
-    c, o = estimate_wear_batch(p12.T, q, xs_m=xs_m, model=model)
-    agg = {'median': np.median, 'mean': np.mean}[combine]
-    return WearEstimate(float(agg(c)), float(agg(o)), float(np.std(c)), float(np.std(o)),
-                        int(q.size), c, o)
-
-
-# --- data, noise, errors ---------------------------------------------------------------------
-
-def canonical_curves(p12_curves_pa, q_m3_s):
-    """Curves at negative flow mapped onto positive flow by the valve's symmetry.
-
-    With equal supply and return overlaps the valve is antisymmetric,
-    ``P12(-XS, -Q) = -P12(XS, Q)``; on the antisymmetric spool grid the curve at ``-Q`` is
-    ``-curve[::-1]`` of the curve at ``Q``.  Curves ``(n, n_xs)``, flows ``(n,)``.
-    """
-    p12 = np.asarray(p12_curves_pa, dtype=float)
-    q = np.asarray(q_m3_s, dtype=float)
-    neg = q < 0.0
-    out = p12.copy()
-    out[neg] = -p12[neg, ::-1]
-    return out, np.abs(q)
 
 
 def add_noise(p12, level: float, rng: np.random.Generator, noise: str = 'relative'):
@@ -296,8 +105,6 @@ def wear_errors(model: DiagnosticModel, curves, q, wear, map_index, *, noise_lev
     return out
 
 
-# --- training ---------------------------------------------------------------------------------
-
 def _half(curves, q, wear):
     """The curves at non-negative flow, the zero-flow curve (which may be stored at a flow of
     -1e-21) included, in the canonical form of :func:`canonical_curves`."""
@@ -309,7 +116,6 @@ def _half(curves, q, wear):
 def _train_one(x_tr, y_tr, x_va, y_va, *, hidden, algorithm, seed, settings, threads):
     """Fit normalisation on the training split, train (:func:`.training.fit_network`), return
     ``(weights, in_norm, out_norm, history, wall_s)``."""
-    from .training import fit_network
     in_norm, out_norm = minmax(x_tr), minmax(y_tr)
     net, hist, wall = fit_network(
         (x_tr - in_norm[0]) / in_norm[1], (y_tr - out_norm[0]) / out_norm[1],
@@ -402,7 +208,7 @@ def build_artefact(params: PlantParams | None = None, out_dir: Path | None = Non
         'architecture': ref.meta['architecture'],
         'training': {k: v for k, v in ref.meta['training'].items() if k != 'split'},
         'errors': ref.meta['errors']}}
-    path = (Path(out_dir) if out_dir is not None else models_dir()) / 'diag.npz'
+    path = (Path(out_dir) if out_dir is not None else models_dir('health')) / 'diag.npz'
     save_artefact(path, model.data(), model.meta)
     _load_cached.cache_clear()
     _default_model.cache_clear()
