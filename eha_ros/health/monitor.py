@@ -284,15 +284,15 @@ class MonitorCore:
             return HealthReport(t, 'preflight', method, ERROR,
                                 f'no estimate: the pre-flight network is not usable: '
                                 f'{self.faults_error}')
-        from eha_ros.physics.maintenance import PREFLIGHT_S, preflight_command
-        expected = int(round(PREFLIGHT_S / 1e-3))
+        from eha_ros.physics.maintenance import PREFLIGHT_S, PREFLIGHT_TICK_S, preflight_command
+        expected = int(round(PREFLIGHT_S / PREFLIGHT_TICK_S))
         if n != expected or len(rec) != n:
             return HealthReport(t, 'preflight', method, ERROR,
                                 f'no estimate: pre-flight check has {len(rec)} of {expected} '
-                                'ticks (states lost, or not at 1 kHz)')
+                                f'ticks (states lost, or not at {1 / PREFLIGHT_TICK_S:g} Hz)')
         arr = np.array([rec[k] for k in range(n)])
         record = {name: arr[:, j] for j, name in enumerate(PREFLIGHT_SIGNALS)}
-        record['command_a'] = preflight_command(n, 1e-3, self.params.current_limit_a)
+        record['command_a'] = preflight_command(n, PREFLIGHT_TICK_S, self.params.current_limit_a)
         est = self.faults.estimate(record)
         items = {}
         for f in FAULTS:

@@ -26,10 +26,10 @@ node ``exp(-n_eff mse / (2 sigma^2))``:
 The estimate is the posterior mean, the deviation the posterior standard deviation (with the
 grid's own resolution added), so a motion that leaves clearance and overlap trading off along
 the valley gives a wide, correlated posterior - the message says so - instead of the sharp
-curvature of one minimum.  This replaces a Levenberg-Marquardt fit with a Laplace deviation
-(``sigma^2 (J^T J)^-1``), which stated 0.06-0.3 um on estimates 3 um off, and took seconds per
-estimate (the steady state solved per sample); on the table an estimate takes milliseconds.
-With a surrogate model (method ``surrogate-fit``) the former fit is kept.
+curvature of one minimum.  A Laplace deviation (``sigma^2 (J^T J)^-1``) of one least-squares
+minimum states far less than the estimate's real error along that valley
+(``bench/health.py`` measures both).  With a surrogate model (method ``surrogate-fit``) the
+estimate is that least-squares fit.
 """
 
 from __future__ import annotations
@@ -47,7 +47,12 @@ __all__ = ['InServiceEstimator']
 
 
 class InServiceEstimator:
-    """Least-squares wear estimate from (XS, Q, P12) samples.
+    """Wear estimate from (XS, Q, P12) samples.
+
+    By default (no ``model``: method ``steady-fit``) the estimate is the grid posterior of the
+    module docstring, on the steady table (:mod:`eha_ros.health.steady_table`).  With a
+    ``model`` (method ``surrogate-fit``) it is a least-squares fit instead: the best node of a
+    coarse grid, then Levenberg-Marquardt, with a Laplace deviation.
 
     Parameters
     ----------
@@ -55,13 +60,18 @@ class InServiceEstimator:
         Physics of the valve (the wear values in it are ignored).
     model : callable, optional
         ``model(xs, q, overlap, clearance) -> p12`` broadcasting over arrays (a surrogate's
-        ``p12``); default the steady-state valve solution.
+        ``p12``); default the steady table.
     coarse : int
-        Points per axis of the coarse grid that picks the starting point.
+        ``surrogate-fit``: points per axis of the coarse grid that picks the starting point.
     iterations : int
-        Most Levenberg-Marquardt iterations from there.
+        ``surrogate-fit``: most Levenberg-Marquardt iterations from there.
     max_samples : int
         Samples used (evenly decimated from the most recent).
+    limits : HealthThresholds, optional
+        Limits whose posterior probabilities are reported, and the model bias that floors the
+        likelihood's sigma (default ``config/health.yaml``).
+    table : SteadyTable, optional
+        Default: the shipped table, checked against ``params``.
     """
 
     def __init__(self, params: PlantParams | None = None, model: Callable | None = None,

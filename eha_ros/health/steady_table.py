@@ -2,18 +2,17 @@
 
 The in-service fit compares measured load pressure with the valve's steady state
 ``P12(XS, Q; overlap, clearance)`` (:func:`eha_ros.physics.maps.steady_map`).  Solved per
-sample that costs about 0.1 ms, so a fit over a grid of wear values and a window of samples
-took seconds - longer than the monitor's update period.  This table holds the steady state
-once, at every node of a wear grid (overlap x clearance) over a grid of (XS, Q) covering
-in-service operation; a fit then interpolates bilinearly in (XS, Q) at each wear node
-(milliseconds).
+sample, a fit over a grid of wear values and a window of samples takes longer than the
+monitor's update period.  This table holds the steady state once, at every node of a wear
+grid (overlap x clearance) over a grid of (XS, Q) covering in-service operation; a fit then
+interpolates bilinearly in (XS, Q) at each wear node.
 
 Axes
     overlap -2..6 um every 0.5 um, radial clearance 1..6 um every 0.25 um (the swept wear
     ranges, :data:`eha_ros.physics.maps.WEAR_RANGES`); spool position +-40 um (asinh-spaced,
-    dense near null where the pressure gain is steep); load flow +-15 cm^3/s (sinh-spaced).
-    In service on the reference's scenarios the spool stays within +-23 um and the flow within
-    +-10 cm^3/s; samples outside the table are not used.
+    dense near null where the pressure gain is steep); load flow +-15 cm^3/s (sinh-spaced),
+    beyond what the reference's scenarios reach in service; samples outside the table are not
+    used.
 
 Build: ``python -m eha_ros.training.steady_table`` (about 2 min on 2 cores) writes
 ``models/steady_table.npz`` with the hash of the fluid parameters it was built for.

@@ -6,29 +6,17 @@ Network
     134 inputs (133 pressures [Pa] and the flow [m^3/s]), each min-max normalised to [-1, 1]
     on the training split; tanh hidden layers; 2 linear outputs, the clearance and the overlap,
     min-max normalised over the training split (the wear ranges of DB4).  The shipped default
-    (``diag.npz``, :data:`DIAG_SETTINGS`) has two hidden layers of 64 trained by Adam then
+    (``diag.npz``, :data:`eha_ros.training.valve_test.DIAG_SETTINGS`) has two hidden layers of 64 trained by Adam then
     L-BFGS; the reference's network (one hidden layer of 10, Levenberg-Marquardt,
-    :data:`DIAG_THESIS_SETTINGS`) is trained alongside and its held-out errors are recorded in
-    the artefact's metadata (``alternatives``): the default's per-map errors on clean curves
-    are two to five times smaller, with 1 % noise about 1.5 times.
+    :data:`eha_ros.training.valve_test.DIAG_THESIS_SETTINGS`) is trained alongside and its
+    held-out errors are recorded in the artefact's metadata (``alternatives``) beside the
+    default's (``errors``).
 
 Symmetry
     With equal supply and return overlaps the valve is antisymmetric,
     ``P12(-XS, -Q) = -P12(XS, Q)``, so a curve at a negative flow is mapped onto the positive
     flow (:func:`canonical_curves`) before it reaches the network, which is trained on the
-    non-negative flows only.  This halves what the network has to learn; it cut the held-out
-    per-map errors of the reference's network by a factor of four to five.
-
-Training (torch, imported inside the training functions)
-    On DB4 (900 maps x 15 flows), whole maps held out: every curve of a held-out
-    ``(overlap, clearance)`` pair is out of training (90 test and 45 validation pairs from the
-    interior of the wear grid).  Noise augmentation: two noisy copies of every training curve
-    with the noise model below (validation on clean and noisy curves).
-
-Noise model
-    ``P_noisy = P (1 + 0.01 n)``, ``n`` standard normal, independent per point: 1 % of each
-    pressure's magnitude (``noise='relative'``, the default).  ``noise='rms'`` instead adds 1 %
-    of the curve's RMS to every point (harsher near null, where P12 is small).
+    non-negative flows only.  This halves what the network has to learn.
 
 Per-map estimate
     A map (the curves at several flows of one valve) gives one estimate per curve; they are
@@ -38,7 +26,8 @@ Per-map estimate
 Errors are reported in % of each parameter's range (:data:`WEAR_RANGES`).  Inference is numpy
 only (:func:`estimate_wear`, :func:`estimate_wear_batch`, :func:`estimate_wear_map`).
 
-Build: ``python -m eha_ros.training.valve_test`` (:func:`build_artefact`).
+Training, its data and noise model: :mod:`eha_ros.training.valve_test`
+(``python -m eha_ros.training.valve_test``).
 """
 
 from __future__ import annotations

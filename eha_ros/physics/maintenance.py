@@ -24,7 +24,7 @@ from .maps import spool_grid, transient_map
 from .params import ParameterError, PlantParams
 
 __all__ = ['MAP_POINTS', 'MAP_HOLD_S', 'ValveTest', 'ValveTestSample', 'PREFLIGHT_PROFILE',
-           'PREFLIGHT_S', 'PREFLIGHT_SIGNALS', 'PreflightCheck', 'preflight_command',
+           'PREFLIGHT_S', 'PREFLIGHT_TICK_S', 'PREFLIGHT_SIGNALS', 'PreflightCheck', 'preflight_command',
            'run_preflight']
 
 #: Spool positions of a curve (the databases' grid).
@@ -135,6 +135,9 @@ PREFLIGHT_PROFILE = (
 )
 #: Duration of the pre-flight check [s].
 PREFLIGHT_S = 1.2
+#: Tick [s] the pre-flight records are defined at (the graph's 1 kHz): the pre-flight network
+#: reads one value per tick of this length.
+PREFLIGHT_TICK_S = 1e-3
 #: Signals the plant reports at every tick of the check (the ActuatorState fields).
 PREFLIGHT_SIGNALS = ('coil_current_a', 'spool_position_m', 'flapper_position_m', 'p12_pa',
                      'jack_position_m', 'jack_velocity_m_s')
@@ -186,7 +189,7 @@ def preflight_command(n_ticks: int, tick_s: float, current_limit_a: float) -> np
     return out * current_limit_a
 
 
-def run_preflight(params: PlantParams, seed: int = 0, tick_s: float = 1e-3,
+def run_preflight(params: PlantParams, seed: int = 0, tick_s: float = PREFLIGHT_TICK_S,
                   dt_s: float = 1e-6) -> dict:
     """The pre-flight check on the plant alone, as the plant node runs it tick by tick: arrays
     (one value per tick, the state at the tick's end) of ``command_a`` and

@@ -8,9 +8,9 @@ Network
     map grid is ``x = stroke sinh(4 u) / sinh(4)``, so that the transformed grid is uniform - and
     then mapped to [-1, 1] by a min-max normalisation fitted on the training split; the output is
     normalised the same way.  The normalisation is saved with the weights.  Both shipped
-    networks use the reference's hidden layers [21 15 3] and the identity transform: with the
-    same training budget the asinh transform of XS gave held-out map errors about twice as
-    large (it spends the network's resolution on the null region at the expense of the rest).
+    networks use the reference's hidden layers [21 15 3] and the identity transform: the asinh
+    transform of XS spends the network's resolution on the null region at the expense of the
+    rest (the artefacts' meta ``comparison`` records both).
 
 Data and training
     :mod:`eha_ros.training.nn` (which databases, which maps are held out, the training algorithms).

@@ -238,9 +238,6 @@ def main(argv=None) -> int:
     return 0
 
 
-if __name__ == '__main__':
-    sys.exit(main())
-
 
 def random_wear(n_maps: int, rng: np.random.Generator, wear=None):
     """``(overlap_m, clearance_m)`` arrays: ``n_maps`` pairs drawn uniformly inside
@@ -294,3 +291,7 @@ def map_errors(model, maps) -> np.ndarray:
     (e.g. :meth:`FluidSurrogate.p12`); ``maps`` as :func:`.database.heldout_maps` returns."""
     return np.array([relative_error(model(xs[:, None], q[None, :], lap, clr), p12)
                      for xs, q, lap, clr, p12 in maps])
+
+
+if __name__ == '__main__':
+    sys.exit(main())
