@@ -1,7 +1,7 @@
 # eha_ros: build, install and test in a local virtual environment (.venv).
 #
 #   make demo    install, then run the main job: the test campaign through the ROS graph
-#   make test    install, then run the test suite against the installed package
+#   make test    install, lint (flake8), then run the test suite against the installed package
 #   make install create .venv, install requirements.txt and the package (non-editable)
 #   make bench   install, plus requirements-bench.txt, then run the benchmarks
 #   make clean   remove .venv and build outputs
@@ -23,7 +23,7 @@ PACKAGE_SOURCES := setup.py setup.cfg pyproject.toml package.xml MANIFEST.in \
 	$(shell find eha_ros msg rosidl_build config resource -not -path '*/__pycache__*' \
 		-not -name '*.pyc' 2>/dev/null)
 
-.PHONY: all install demo test bench clean
+.PHONY: all install demo test lint bench clean
 
 all: test
 
@@ -46,8 +46,12 @@ install: $(STAMPS)/package
 
 # .venv/bin/pytest (not `python -m pytest`, which would put the source folder on sys.path):
 # the tests import the installed eha_ros, which carries the generated eha_ros.msg.
-test: install
+test: install lint
 	$(BIN)/pytest $(PYTEST_ARGS)
+
+# flake8 (configured in setup.cfg) over the package, the tests, the benches and the build.
+lint: $(STAMPS)/requirements
+	$(BIN)/flake8 eha_ros test bench rosidl_build setup.py
 
 # The main job: the reference's test campaign (steps, ramps, sines x hf, ga, nn, lut) through
 # the ROS 2 graph in lockstep, every run recorded to MCAP, then a report (runs/campaign-*/).

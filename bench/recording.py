@@ -66,9 +66,9 @@ def _publish(duration_s: float, rate_hz: float, wait_s: float) -> dict:
         graph.TOPIC_STATE: node.create_publisher(ActuatorState, graph.TOPIC_STATE, qos),
         graph.TOPIC_COMMAND: node.create_publisher(ActuatorCommand, graph.TOPIC_COMMAND, qos),
         graph.TOPIC_SERVOVALVE: node.create_publisher(ServovalveCommand,
-                                                       graph.TOPIC_SERVOVALVE, qos),
+                                                      graph.TOPIC_SERVOVALVE, qos),
         graph.TOPIC_DIAGNOSTICS: node.create_publisher(DiagnosticArray,
-                                                        graph.TOPIC_DIAGNOSTICS, qos),
+                                                       graph.TOPIC_DIAGNOSTICS, qos),
         graph.TOPIC_CLOCK: node.create_publisher(Clock, graph.TOPIC_CLOCK, qos),
         graph.TOPIC_HEALTH: node.create_publisher(HealthStatus, graph.TOPIC_HEALTH, qos),
     }

@@ -74,7 +74,7 @@ def events(runs: int) -> dict:
             r = run_graph(GraphConfig(scenario='sine_0p01_10pi', duration_s=0.25,
                                       events=EVENTS), processes=True, env=env, timeout_s=60)
         data = {f: r.state[f] for f in ('jack_position_m', 'p12_pa', 'spool_position_m',
-                                         'coil_current_a')}
+                                        'coil_current_a')}
         data['current_command_a'] = r.servovalve['current_command_a'][:250]
         first = first or data
         same_as_first += all(np.array_equal(first[f], data[f]) for f in data)

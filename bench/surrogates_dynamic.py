@@ -73,7 +73,8 @@ def main():
         t0 = time.perf_counter()
         out['models'][name] = {'edge_flow_relative': edge_errors(s, n=args.n, seed=5),
                                'chamber_flow_relative_to_max': chamber_errors(s),
-                               'artefact_bytes': (models_dir('surrogates') / f'{name}.npz').stat().st_size,
+                               'artefact_bytes': (models_dir('surrogates')
+                                                  / f'{name}.npz').stat().st_size,
                                'kernel_ns_per_call': ns}
         out['models'][name]['eval_s'] = round(time.perf_counter() - t0, 2)
     if args.refit:

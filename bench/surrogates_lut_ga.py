@@ -39,8 +39,8 @@ from numba import njit
 from eha_ros.physics import default_params
 from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
 from eha_ros.surrogates import ga, lut
-from eha_ros.training import ga as ga_training
-from eha_ros.training import lut as lut_training
+from eha_ros.training import ga as ga_fit
+from eha_ros.training import lut as lut_build
 from eha_ros.artefacts import models_dir
 from eha_ros.surrogates.registry import load_surrogate
 from eha_ros.physics.maps import FLOW_MAX_M3_S
@@ -161,7 +161,7 @@ def _bench_lut(rand, smooth, maps, db_maps, small, build):
     s = load_surrogate('lut')
     axes, table = s.data[:4], s.data[4]
     out = {'grid': {k: s.meta['data'][k] for k in ('source', 'n_xs', 'n_q', 'q_density',
-                                                    'n_overlap', 'n_clearance')},
+                                                   'n_overlap', 'n_clearance')},
            'artefact_bytes': (models_dir('surrogates') / 'lut.npz').stat().st_size,
            'table_dtype': str(table.dtype)}
     acc = {'random_wear_offgrid': _summary(map_errors(s.p12, maps)),
@@ -205,7 +205,7 @@ def _bench_lut(rand, smooth, maps, db_maps, small, build):
     if build:
         with tempfile.TemporaryDirectory() as d:
             t0 = time.perf_counter()
-            lut_training.build_artefact(path=Path(d) / 'lut.npz')
+            lut_build.build_artefact(path=Path(d) / 'lut.npz')
             out['build_s'] = round(time.perf_counter() - t0, 1)
     else:
         out['build_s_recorded'] = s.meta.get('build_wall_s')
@@ -221,26 +221,27 @@ def _bench_ga(rand, smooth, maps, small, build, de_maxiter):
     db = get_database('DB5')
     x, q = np.meshgrid(db.xs_m, db.q_m3_s, indexing='ij')
     p12 = db.p12_pa[:, :, 0, 0]
-    xh, qh, ph = ga_training.nominal_offgrid_map(p, db.xs_m, db.q_m3_s)
+    xh, qh, ph = ga_fit.nominal_offgrid_map(p, db.xs_m, db.q_m3_s)
     stroke = p.spool_stroke_m
 
     def errs(c):
-        return {'train_pct': round(float(ga_training.coefficient_errors(c, x, q, p12)[0]) * 100, 3),
-                'heldout_pct': round(float(ga_training.coefficient_errors(c, xh, qh, ph)[0]) * 100, 3)}
+        err = ga_fit.coefficient_errors
+        return {'train_pct': round(float(err(c, x, q, p12)[0]) * 100, 3),
+                'heldout_pct': round(float(err(c, xh, qh, ph)[0]) * 100, 3)}
 
     out = {'coefficients': meta['coefficients'], 'normalisation': meta['normalisation'],
            'ga_settings': meta['ga']['settings'],
            'ga_recorded': {k: meta['ga'][k] for k in ('generations_run', 'evaluations',
-                                                       'wall_s')}}
+                                                      'wall_s')}}
     acc = {'nominal_offgrid': {'ga': errs(s.data[0]),
-                               'reference_initial': errs(ga_training.THESIS_INITIAL)}}
+                               'reference_initial': errs(ga_fit.THESIS_INITIAL)}}
     for label, rec in meta.get('gradient', {}).items():
         if isinstance(rec, dict):
             acc['nominal_offgrid'][f'gradient_{label}'] = errs(np.array(rec['coefficients']))
     # the same function without the reference's bounds (the function's own limit)
     wide = np.r_[2e7, np.full(7, 1e12)]
-    c_wide, _, _ = ga_training.gradient_fit(x, q, p12, stroke, x0=s.data[0], lb=np.r_[2e7, -wide[1:]],
-                                   ub=wide)
+    c_wide, _, _ = ga_fit.gradient_fit(x, q, p12, stroke, x0=s.data[0],
+                                       lb=np.r_[2e7, -wide[1:]], ub=wide)
     acc['nominal_offgrid']['gradient_from_ga_unbounded'] = errs(c_wide)
     acc['error_share_by_xs_band_nominal'] = _error_by_band(
         lambda a, b, c_, d: ga.formula(s.data[0], a / ga.XS_REF_M, b / ga.Q_REF_M3_S),
@@ -250,38 +251,40 @@ def _bench_ga(rand, smooth, maps, small, build, de_maxiter):
     # the function's limit per wear pair: refit on each DB1 map
     db1 = get_database('DB1')
     pairs = [(i, j) for i in range(db1.overlap_m.size) for j in range(db1.clearance_m.size)]
-    fresh = lut_training.heldout_maps(0, wear=[(db1.overlap_m[i], db1.clearance_m[j])
-                                      for i, j in pairs])
+    fresh = lut_build.heldout_maps(0, wear=[(db1.overlap_m[i], db1.clearance_m[j])
+                                            for i, j in pairs])
     on_map, off_grid = [], []
     for (i, j), (fx, fq, _, _, fp) in zip(pairs, fresh):
         xi, qi = np.meshgrid(db1.xs_m, db1.q_m3_s, indexing='ij')
-        c, e, _ = ga_training.gradient_fit(xi, qi, db1.p12_pa[:, :, i, j], stroke, x0=s.data[0])
+        c, e, _ = ga_fit.gradient_fit(xi, qi, db1.p12_pa[:, :, i, j], stroke, x0=s.data[0])
         on_map.append(e)
         fxx, fqq = np.meshgrid(fx, fq, indexing='ij')
-        off_grid.append(ga_training.coefficient_errors(c, fxx, fqq, fp)[0])
+        off_grid.append(ga_fit.coefficient_errors(c, fxx, fqq, fp)[0])
     acc['refit_per_db1_map'] = {'on_the_db1_map': _summary(on_map),
                                 'fresh_offgrid_map_same_wear': _summary(off_grid)}
     out['accuracy'] = acc
     out['speed'] = _timing(s, rand, smooth)
     # scipy differential evolution: same function, fitness, admissibility and bounds
-    free = ga_training.THESIS_UB > ga_training.THESIS_LB
+    free = ga_fit.THESIS_UB > ga_fit.THESIS_LB
     count = [0]
 
     def fitness(v):  # v: (7, S) with vectorized=True
         count[0] += v.shape[1]
-        c = np.tile(ga_training.THESIS_LB, (v.shape[1], 1))
+        c = np.tile(ga_fit.THESIS_LB, (v.shape[1], 1))
         c[:, free] = v.T
-        f = ga_training.coefficient_errors(c, x, q, p12)
-        f[np.any(ga_training.min_denominators(c, stroke) < ga_training.MIN_DENOMINATOR, axis=1)] = np.inf
+        f = ga_fit.coefficient_errors(c, x, q, p12)
+        poles = ga_fit.min_denominators(c, stroke) < ga_fit.MIN_DENOMINATOR
+        f[np.any(poles, axis=1)] = np.inf
         return f
 
     t0 = time.perf_counter()
-    r = differential_evolution(fitness, list(zip(ga_training.THESIS_LB[free], ga_training.THESIS_UB[free])),
-                               x0=ga_training.THESIS_INITIAL[free], maxiter=de_maxiter, popsize=15,
+    bounds = list(zip(ga_fit.THESIS_LB[free], ga_fit.THESIS_UB[free]))
+    r = differential_evolution(fitness, bounds,
+                               x0=ga_fit.THESIS_INITIAL[free], maxiter=de_maxiter, popsize=15,
                                seed=0, polish=False, vectorized=True, updating='deferred',
                                tol=0.0)
     wall = time.perf_counter() - t0
-    c_de = ga_training.THESIS_LB.copy()
+    c_de = ga_fit.THESIS_LB.copy()
     c_de[free] = r.x
     out['scipy_differential_evolution'] = {
         'settings': {'maxiter': de_maxiter, 'popsize': 15, 'polish': False, 'seed': 0,
@@ -291,7 +294,7 @@ def _bench_ga(rand, smooth, maps, small, build, de_maxiter):
     if build:
         with tempfile.TemporaryDirectory() as d:
             t0 = time.perf_counter()
-            bp = ga_training.build_artefact(path=Path(d) / 'ga.npz')
+            bp = ga_fit.build_artefact(path=Path(d) / 'ga.npz')
             out['build_s'] = round(time.perf_counter() - t0, 1)
             from eha_ros.surrogates.base import load_artefact
             out['build_reproduces_shipped'] = bool(np.array_equal(load_artefact(bp)[0][0],
@@ -305,7 +308,7 @@ def run(build: bool = True, de_maxiter: int = 300) -> dict:
     """All figures as one dict (see the module docstring)."""
     t0 = time.perf_counter()
     rand, smooth = _inputs()
-    maps = lut_training.heldout_maps(12, seed=2024, n_q=30)
+    maps = lut_build.heldout_maps(12, seed=2024, n_q=30)
     db_maps = _db_grid_maps(12, seed=4242)
     small = {'xs_25um_q_1e-5': _small_signal_maps(1e-5),
              'xs_25um_q_1e-6': _small_signal_maps(1e-6)}

@@ -78,10 +78,12 @@ def _nn_accuracy(s):
         test = [tuple(t) for t in meta['training']['split']['test_pairs']]
         for name in meta['training']['databases']:
             db = get_database(name)
-            out[f'{name}_held_out'] = _summary(nn_train.network_map_errors(s.data, nn_train.db_maps(db, test)))
+            out[f'{name}_held_out'] = _summary(
+                nn_train.network_map_errors(s.data, nn_train.db_maps(db, test)))
         for q_max in (6e-5, 1.5e-5):
             maps = heldout_maps(12, q_max_m3_s=q_max, n_q=15, seed=4242)
-            out[f'fresh_random_wear_q{q_max:.1e}'] = _summary(nn_train.network_map_errors(s.data, maps))
+            out[f'fresh_random_wear_q{q_max:.1e}'] = _summary(
+                nn_train.network_map_errors(s.data, maps))
     else:
         db = get_database('DB5')
         cols = np.array(meta['training']['split']['test_flows'])
@@ -133,10 +135,10 @@ def _sklearn(meta, max_iter, seed=0):
 
 def _diag(seed=0):
     m = valve_test.load_diagnostic()
-    out = {'architecture': m.meta['architecture'], 'training': {
-        k: m.meta['training'][k] for k in ('algorithm', 'time_s', 'adam_steps', 'lbfgs_iters',
-                                           'noise_augmentation')},
-        'held_out_recorded': m.meta['errors'], 'alternatives': m.meta.get('alternatives')}
+    keys = ('algorithm', 'time_s', 'adam_steps', 'lbfgs_iters', 'noise_augmentation')
+    out = {'architecture': m.meta['architecture'],
+           'training': {k: m.meta['training'][k] for k in keys},
+           'held_out_recorded': m.meta['errors'], 'alternatives': m.meta.get('alternatives')}
     maps = heldout_maps(20, q_max_m3_s=6e-5, n_q=15, seed=9090)
     curves = np.concatenate([p12.T for *_, p12 in maps])
     q = np.concatenate([mq for _, mq, *_ in maps])
@@ -145,9 +147,9 @@ def _diag(seed=0):
     out['fresh_random_wear'] = {
         'clean': valve_test_training.wear_errors(m, curves, q, wear, idx),
         'noise_1pct': valve_test_training.wear_errors(m, curves, q, wear, idx, noise_level=0.01,
-                                              seed=seed),
-        'noise_1pct_rms': valve_test_training.wear_errors(m, curves, q, wear, idx, noise_level=0.01,
-                                                  noise='rms', seed=seed)}
+                                                      seed=seed),
+        'noise_1pct_rms': valve_test_training.wear_errors(
+            m, curves, q, wear, idx, noise_level=0.01, noise='rms', seed=seed)}
     one = curves[0]
     valve_test.estimate_wear(one, q[0])
     n = 2000

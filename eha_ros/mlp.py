@@ -15,7 +15,8 @@ __all__ = ['split_weights', 'flatten_weights', 'quintic', 'NUMPY_ACTIVATIONS', '
 def split_weights(theta, sizes) -> list:
     """``[(W, b), ...]`` of a dense network with layer widths ``sizes`` from the flat
     ``theta``: layer by layer ``W`` (row-major, ``d_in x d_out``) then ``b``.  Raises
-    :class:`~eha_ros.artefacts.ArtefactError` when the widths do not account for ``theta`` exactly."""
+    :class:`~eha_ros.artefacts.ArtefactError` when the widths do not account for ``theta``
+    exactly."""
     theta = np.asarray(theta, dtype=float)
     weights = []
     k = 0
@@ -26,7 +27,7 @@ def split_weights(theta, sizes) -> list:
         k += do
     if k != theta.size:
         raise ArtefactError(f'{theta.size} weights for layer widths {list(sizes)} '
-                             f'(which need {k})')
+                            f'(which need {k})')
     return weights
 
 

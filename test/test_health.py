@@ -43,8 +43,8 @@ def test_uninformative_motion_is_not_labelled_precise():
     e = InServiceEstimator(P).estimate(r['spool_position_m'][m], r['load_flow_m3_s'][m],
                                        r['p12_pa'][m])
     assert e.radial_clearance_std_m > 0.8e-6
-    assert abs(e.radial_clearance_m - 2.5e-6) <= 2 * e.radial_clearance_std_m
-    assert abs(e.overlap_m - 1e-6) <= 2 * e.overlap_std_m
+    assert abs(e.radial_clearance_m - P.radial_clearance_m) <= 2 * e.radial_clearance_std_m
+    assert abs(e.overlap_m - P.overlap_supply_m) <= 2 * e.overlap_std_m
     level, text = classify(e, HealthThresholds.load())
     assert level == OK
     assert 'not separable' in text
@@ -59,14 +59,27 @@ def _est(clr, lap, res=1e4):
     return HealthEstimate(clr, 1e-8, lap, 1e-8, res, 100, 'steady-fit')
 
 
+def _levels(lim):
+    """Wear [m] inside each band of ``lim`` (whatever config/health.yaml says): nominal, then
+    half-way between warn and error, then as far beyond error again."""
+    c_warn = 0.5 * (lim.clearance_warn_m + lim.clearance_error_m)
+    c_err = 2 * lim.clearance_error_m - lim.clearance_warn_m
+    o_warn = 0.5 * (lim.overlap_warn_m + lim.overlap_error_m)
+    o_err = 2 * lim.overlap_error_m - lim.overlap_warn_m
+    return c_warn, c_err, o_warn, o_err
+
+
 def test_levels_follow_the_thresholds():
     lim = HealthThresholds.load()
-    assert classify(_est(2.5e-6, 1e-6), lim)[0] == OK
-    assert classify(_est(4.2e-6, 1e-6), lim)[0] == WARN
-    assert classify(_est(5.5e-6, 1e-6), lim)[0] == ERROR
-    assert classify(_est(2.5e-6, -0.5e-6), lim)[0] == WARN
-    assert classify(_est(2.5e-6, -1.5e-6), lim)[0] == ERROR
-    level, text = classify(_est(2.5e-6, 1e-6, res=5e6), lim)
+    clr, lap = P.radial_clearance_m, P.overlap_supply_m
+    assert lim.clearance_warn_m > clr and lim.overlap_warn_m < lap  # nominal is healthy
+    c_warn, c_err, o_warn, o_err = _levels(lim)
+    assert classify(_est(clr, lap), lim)[0] == OK
+    assert classify(_est(c_warn, lap), lim)[0] == WARN
+    assert classify(_est(c_err, lap), lim)[0] == ERROR
+    assert classify(_est(clr, o_warn), lim)[0] == WARN
+    assert classify(_est(clr, o_err), lim)[0] == ERROR
+    level, text = classify(_est(clr, lap, res=2 * lim.residual_error_pa), lim)
     assert level == ERROR and 'does not explain' in text
 
 
@@ -76,48 +89,58 @@ def test_in_service_levels_need_the_data_to_reject_the_nominal_valve():
     whatever the fit says); above it the estimate grades the level, and a deviation with the
     fit inside the limits is a WARN."""
     lim = HealthThresholds.load()
-    assert lim.anomaly_ratio == 3.0
+    c_warn, c_err, o_warn, o_err = _levels(lim)
+    fit_res = 0.4 * lim.model_bias_pa           # a fit better than the model: floored
+    floor = max(fit_res, lim.model_bias_pa)
+    below, above = 0.8 * lim.anomaly_ratio * floor, 1.07 * lim.anomaly_ratio * floor
 
     def est(clr, lap, nominal_res):
-        e = _est(clr, lap, res=2e4)
+        e = _est(clr, lap, res=fit_res)
         e.nominal_residual_pa = nominal_res
         return e
-    assert lim.model_bias_pa == 5e4
-    level, text = classify(est(6e-6, -1e-6, 1.2e5), lim)    # ratio 1.2e5 / 5e4 = 2.4
+    level, text = classify(est(c_err, o_err, below), lim)
     assert level == OK and 'consistent with the nominal valve' in text
-    assert classify(est(6e-6, -1e-6, 1.6e5), lim)[0] == ERROR  # 3.2
-    assert classify(est(4.2e-6, 1e-6, 1.6e5), lim)[0] == WARN
-    level, text = classify(est(2.5e-6, 1e-6, 1.6e5), lim)
+    assert classify(est(c_err, o_err, above), lim)[0] == ERROR
+    assert classify(est(c_warn, P.overlap_supply_m, above), lim)[0] == WARN
+    level, text = classify(est(P.radial_clearance_m, P.overlap_supply_m, above), lim)
     assert level == WARN and 'valve test' in text
-    # with the posterior's probabilities, a limit counts only with 95 % of the mass beyond it
-    e = est(4.2e-6, 1e-6, 1.6e5)
-    e.beyond = {'clearance_warn': 0.9, 'clearance_error': 0.1, 'overlap_warn': 0.0,
+    # with the posterior's probabilities, a limit counts only with enough mass beyond it
+    p = lim.evidence_probability
+    e = est(c_warn, P.overlap_supply_m, above)
+    e.beyond = {'clearance_warn': p - 0.05, 'clearance_error': 0.1, 'overlap_warn': 0.0,
                 'overlap_error': 0.0}
     level, text = classify(e, lim)
     assert level == WARN and 'do not pin' in text
-    e.beyond['clearance_warn'] = 0.97
+    e.beyond['clearance_warn'] = round(p + 0.02, 2)
     level, text = classify(e, lim)
-    assert level == WARN and 'probability 0.97' in text
-    e.beyond['clearance_error'] = 0.96
+    assert level == WARN and f'probability {p + 0.02:.2f}' in text
+    e.beyond['clearance_error'] = p + 0.01
     assert classify(e, lim)[0] == ERROR
     # the floor: a fit far better than the model's bias on a healthy valve proves nothing
-    e = est(6e-6, -1e-6, 1.2e5)
-    e.pressure_residual_pa = 1e3     # unfloored ratio 120
+    e = est(c_err, o_err, below)
+    e.pressure_residual_pa = 1e-3 * lim.model_bias_pa
     assert classify(e, lim)[0] == OK
 
 
 def test_fault_levels_need_evidence():
-    """A pre-flight estimate passes a limit only when it is beyond it by 1.64 sigma (95 %);
-    the offset's limits apply to its magnitude."""
+    """A pre-flight estimate passes a limit only when it is beyond it by z sigma (z from
+    ``evidence_probability``); the offset's limits apply to its magnitude."""
+    from statistics import NormalDist
     lim = HealthThresholds.load()
-    assert classify_fault('demagnetisation', 0.02, 0.02, lim)[0] == OK
-    level, text = classify_fault('demagnetisation', 0.12, 0.02, lim)
+    z = NormalDist().inv_cdf(lim.evidence_probability)
+    f = lim.fault('demagnetisation')
+    sd = (f.error - f.warn) / 10
+    assert classify_fault(f.name, f.warn - sd, sd, lim)[0] == OK
+    level, text = classify_fault(f.name, f.warn + 0.5 * z * sd, sd, lim)
     assert level == OK and 'not proven' in text
-    assert classify_fault('demagnetisation', 0.16, 0.02, lim)[0] == WARN
-    level, text = classify_fault('demagnetisation', 0.35, 0.02, lim)
-    assert level == ERROR and 'error limit 0.25' in text
-    assert classify_fault('offset_a', -6e-4, 2e-5, lim)[0] == ERROR
-    assert classify_fault('offset_a', -3e-4, 2e-5, lim)[0] == WARN
+    assert classify_fault(f.name, f.warn + 1.5 * z * sd, sd, lim)[0] == WARN
+    level, text = classify_fault(f.name, f.error + 1.5 * z * sd, sd, lim)
+    assert level == ERROR and f'error limit {f.error:g}' in text
+    o = lim.fault('offset_a')
+    assert o.absolute
+    sd = (o.error - o.warn) / 10
+    assert classify_fault(o.name, -(o.error + 1.5 * z * sd), sd, lim)[0] == ERROR
+    assert classify_fault(o.name, -(o.warn + 1.5 * z * sd), sd, lim)[0] == WARN
 
 
 _REST = ('evidence_probability: 0.95\nseparable_correlation: 0.9\nstale_after_s: 2\n'

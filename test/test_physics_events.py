@@ -220,7 +220,7 @@ def test_validate_returns_the_parameters_after_each_event():
     s = EventSchedule([(0.2, {'kp_a_m': 7.0}), (0.1, {'kp_a_m': 5.0, 'offset_a': 1e-4})])
     after = s.validate(P)
     assert after == [replace(P, kp_a_m=5.0, offset_a=1e-4), replace(P, kp_a_m=7.0,
-                                                                      offset_a=1e-4)]
+                                                                    offset_a=1e-4)]
 
 
 def test_due_applies_at_the_first_tick_at_or_after_the_event_time():

@@ -923,7 +923,7 @@ def test_recorder_splits_into_numbered_complete_files(ros_env, tmp_path, split):
 
 
 def test_snapshot_mode_writes_the_last_seconds_on_request_and_on_health_error(ros_env,
-                                                                            tmp_path):
+                                                                              tmp_path):
     """Snapshot mode, states flowing at 1 kHz: the ~/snapshot service and then a health ERROR
     each write the last 0.5 s (contiguous ticks, no more than 0.5 s) to box_0 and box_1."""
     from rclpy.duration import Duration

@@ -247,7 +247,7 @@ def test_a_live_parameter_set_is_published_with_its_tick(ros_env):
 
 @pytest.mark.parametrize('field, value, words', [
     ('plant', {'radial_clearnce_m': 4e-6}, ['servovalve_plant', "'radial_clearnce_m'",
-                                           'radial_clearance_m']),
+                                            'radial_clearance_m']),
     ('node_params', {'controller': {'kp': 3.0}}, ['controller', "'kp'", 'kp_a_m']),
     ('node_params', {'recorder': {'topics': ['/eha/state']}}, ['no node', 'recorder']),
     ('health_params', {'window_s': 1.0}, ['health_params', 'health=True']),
@@ -258,7 +258,7 @@ def test_a_live_parameter_set_is_published_with_its_tick(ros_env):
     ('events', [(0.1, 'command_generator', {'amplitude_m': 1e-4})],
      ['command_generator', 'takes no events']),
     ('plant', {'supply_pressure_pa': 1e12}, ['supply_pressure_pa', 'physical parameter',
-                                            'servovalve_plant.params_file']),
+                                             'servovalve_plant.params_file']),
 ])
 def test_graph_config_refuses_what_no_node_has_before_anything_starts(field, value, words):
     with pytest.raises(GraphConfigError) as info:

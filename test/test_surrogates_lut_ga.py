@@ -14,8 +14,8 @@ from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
 from eha_ros.physics.params import replace
 from eha_ros.artefacts import models_dir
 from eha_ros.surrogates import ga, lut
-from eha_ros.training import ga as ga_training
-from eha_ros.training import lut as lut_training
+from eha_ros.training import ga as ga_fit
+from eha_ros.training import lut as lut_build
 from eha_ros.surrogates.base import SurrogateError
 from eha_ros.surrogates.registry import load_surrogate
 from eha_ros.physics.maps import FLOW_MAX_M3_S, fluid_hash
@@ -165,7 +165,7 @@ def test_axis_tables_refuse_extremely_non_uniform_axes():
 def test_shipped_lut_error_on_fresh_maps_at_random_wear(shipped_lut):
     """Maps at random wear, at spool positions and flows off the table grid: the measured
     error is about 0.15 % (mean), 0.25 % (max); the bound leaves room for other seeds."""
-    maps = lut_training.heldout_maps(4, seed=11, n_q=12)
+    maps = lut_build.heldout_maps(4, seed=11, n_q=12)
     err = map_errors(shipped_lut.p12, maps)
     assert np.all(err < 0.01), err
 
@@ -187,10 +187,10 @@ def test_lut_build_round_trip(tmp_path):
     """A tiny table built through ``build_artefact`` loads back and interpolates it."""
     p = default_params()
     grid = {'n_xs': 9, 'n_q': 5, 'n_overlap': 2, 'n_clearance': 2}
-    path = lut_training.build_artefact(p, tmp_path / 'lut.npz', grid=grid, n_validation_maps=0)
+    path = lut_build.build_artefact(p, tmp_path / 'lut.npz', grid=grid, n_validation_maps=0)
     s = load_surrogate('lut', p, path=path)
     assert s.meta['data']['n_q'] == 5 and s.meta['fluid_hash'] == fluid_hash(p)
-    xs, q, lap, clr, table = lut_training.build_table(p, **grid)
+    xs, q, lap, clr, table = lut_build.build_table(p, **grid)
     assert_allclose(s.p12(*np.meshgrid(xs, q, lap, clr, indexing='ij')),
                     table.astype(np.float32), rtol=1e-9, atol=1.0)
 
@@ -217,7 +217,7 @@ def test_ga_kernel_equals_the_numpy_formula(shipped_ga):
 def test_ga_kernel_with_random_coefficients():
     rng = np.random.default_rng(7)
     for _ in range(5):
-        c = ga_training.THESIS_INITIAL * rng.uniform(0.5, 2.0, 8)
+        c = ga_fit.THESIS_INITIAL * rng.uniform(0.5, 2.0, 8)
         s = ga.make_ga(c, 3e-4)
         xs = rng.uniform(-3e-4, 3e-4, 200)
         q = rng.uniform(-6e-5, 6e-5, 200)
@@ -231,8 +231,8 @@ def test_relative_error_matches_its_definition():
     xs = rng.uniform(-3e-4, 3e-4, 300)
     q = rng.uniform(-6e-5, 6e-5, 300)
     p = rng.normal(0, 3e7, 300)
-    pop = ga_training.THESIS_INITIAL * rng.uniform(0.5, 2.0, (4, 8))
-    got = ga_training.coefficient_errors(pop, xs, q, p)
+    pop = ga_fit.THESIS_INITIAL * rng.uniform(0.5, 2.0, (4, 8))
+    got = ga_fit.coefficient_errors(pop, xs, q, p)
     for k in range(4):
         r = ga.formula(pop[k], xs / ga.XS_REF_M, q / ga.Q_REF_M3_S) - p
         assert got[k] == pytest.approx(np.linalg.norm(r) / np.linalg.norm(p), rel=1e-12)
@@ -240,9 +240,9 @@ def test_relative_error_matches_its_definition():
 
 def test_min_denominators_against_a_dense_scan():
     rng = np.random.default_rng(9)
-    pop = rng.uniform(ga_training.THESIS_LB, ga_training.THESIS_UB, (50, 8))
+    pop = rng.uniform(ga_fit.THESIS_LB, ga_fit.THESIS_UB, (50, 8))
     s = np.linspace(0.0, (3e-4 / ga.XS_REF_M) ** 2, 200001)
-    got = ga_training.min_denominators(pop, 3e-4)
+    got = ga_fit.min_denominators(pop, 3e-4)
     for k in range(pop.shape[0]):
         c = pop[k]
         for col, (a, b) in enumerate(((c[3], c[4]), (c[6], c[7]))):
@@ -263,17 +263,20 @@ def small_nominal_map():
 def test_ga_improves_respects_bounds_and_is_reproducible(small_nominal_map):
     x, q, p = small_nominal_map
     stroke = default_params().spool_stroke_m
-    settings = ga_training.GASettings(population=16, generations=12, seed=3)
-    r1 = ga_training.genetic_fit(x, q, p, stroke, settings)
-    r2 = ga_training.genetic_fit(x, q, p, stroke, settings)
-    r3 = ga_training.genetic_fit(x, q, p, stroke, ga_training.GASettings(population=16, generations=12, seed=4))
-    initial = ga_training.coefficient_errors(ga_training.THESIS_INITIAL, x, q, p)[0]
+    settings = ga_fit.GASettings(population=16, generations=12, seed=3)
+    r1 = ga_fit.genetic_fit(x, q, p, stroke, settings)
+    r2 = ga_fit.genetic_fit(x, q, p, stroke, settings)
+    r3 = ga_fit.genetic_fit(x, q, p, stroke,
+                            ga_fit.GASettings(population=16, generations=12, seed=4))
+    initial = ga_fit.coefficient_errors(ga_fit.THESIS_INITIAL, x, q, p)[0]
     assert r1.error < 0.5 * initial
-    assert r1.error == pytest.approx(ga_training.coefficient_errors(r1.coefficients, x, q, p)[0], rel=1e-12)
+    assert r1.error == pytest.approx(ga_fit.coefficient_errors(r1.coefficients, x, q, p)[0],
+                                     rel=1e-12)
     assert np.all(np.diff(r1.history) <= 0)  # elitism: the best never gets worse
-    assert np.all(r1.coefficients >= ga_training.THESIS_LB) and np.all(r1.coefficients <= ga_training.THESIS_UB)
-    assert r1.coefficients[0] == ga_training.THESIS_LB[0]  # pinned
-    assert np.all(ga_training.min_denominators(r1.coefficients, stroke) >= ga_training.MIN_DENOMINATOR)
+    assert np.all(r1.coefficients >= ga_fit.THESIS_LB)
+    assert np.all(r1.coefficients <= ga_fit.THESIS_UB)
+    assert r1.coefficients[0] == ga_fit.THESIS_LB[0]  # pinned
+    assert np.all(ga_fit.min_denominators(r1.coefficients, stroke) >= ga_fit.MIN_DENOMINATOR)
     assert_array_equal(r1.coefficients, r2.coefficients)
     assert_array_equal(r1.history, r2.history)
     assert not np.array_equal(r1.coefficients, r3.coefficients)
@@ -282,10 +285,9 @@ def test_ga_improves_respects_bounds_and_is_reproducible(small_nominal_map):
 
 def test_ga_stops_on_stall(small_nominal_map):
     x, q, p = small_nominal_map
-    r = ga_training.genetic_fit(x, q, p, 3e-4, ga_training.GASettings(population=8, generations=500,
-                                                      stall_generations=3,
-                                                      mutation_rate=0.0,
-                                                      crossover_rate=0.0, seed=0))
+    settings = ga_fit.GASettings(population=8, generations=500, stall_generations=3,
+                                 mutation_rate=0.0, crossover_rate=0.0, seed=0)
+    r = ga_fit.genetic_fit(x, q, p, 3e-4, settings)
     assert r.generations < 500
 
 
@@ -296,24 +298,24 @@ def test_ga_stops_on_stall(small_nominal_map):
 def test_ga_settings_are_checked(small_nominal_map, kw, match):
     x, q, p = small_nominal_map
     with pytest.raises(SurrogateError, match=match):
-        ga_training.genetic_fit(x, q, p, 3e-4, ga_training.GASettings(**kw))
+        ga_fit.genetic_fit(x, q, p, 3e-4, ga_fit.GASettings(**kw))
 
 
 def test_ga_refuses_start_outside_bounds(small_nominal_map):
     x, q, p = small_nominal_map
-    bad = ga_training.THESIS_INITIAL.copy()
+    bad = ga_fit.THESIS_INITIAL.copy()
     bad[1] = 5.0
     with pytest.raises(SurrogateError, match='outside the bounds'):
-        ga_training.genetic_fit(x, q, p, 3e-4, ga_training.GASettings(population=8, generations=1), x0=bad)
+        ga_fit.genetic_fit(x, q, p, 3e-4, ga_fit.GASettings(population=8, generations=1), x0=bad)
 
 
 def test_gradient_fit_does_not_worsen_the_ga(small_nominal_map):
     x, q, p = small_nominal_map
-    r = ga_training.genetic_fit(x, q, p, 3e-4, ga_training.GASettings(population=16, generations=10, seed=1))
-    c, err, info = ga_training.gradient_fit(x, q, p, 3e-4, x0=r.coefficients)
+    r = ga_fit.genetic_fit(x, q, p, 3e-4, ga_fit.GASettings(population=16, generations=10, seed=1))
+    c, err, info = ga_fit.gradient_fit(x, q, p, 3e-4, x0=r.coefficients)
     assert err <= r.error * (1 + 1e-9)
     assert info['admissible']
-    assert np.all(c >= ga_training.THESIS_LB) and np.all(c <= ga_training.THESIS_UB)
+    assert np.all(c >= ga_fit.THESIS_LB) and np.all(c <= ga_fit.THESIS_UB)
 
 
 def test_shipped_ga_error_on_the_nominal_map_off_its_grid(shipped_ga):
@@ -355,7 +357,7 @@ def test_artefacts_carry_units_normalisation_and_hash(shipped_lut, shipped_ga):
     for s in (shipped_lut, shipped_ga):
         assert s.meta['fluid_hash']
         assert [i['name'] for i in s.meta['inputs']] == ['xs_m', 'q_m3_s', 'overlap_m',
-                                                          'clearance_m']
+                                                         'clearance_m']
         assert s.meta['output'] == {'name': 'p12_pa', 'unit': 'Pa'}
     assert shipped_ga.meta['normalisation']['xs_ref_m'] == ga.XS_REF_M
     assert shipped_ga.meta['normalisation']['q_ref_m3_s'] == ga.Q_REF_M3_S

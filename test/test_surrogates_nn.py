@@ -116,10 +116,10 @@ def test_training_is_reproducible(algorithm):
         model = networks.make_torch_mlp(d_in=1, d_hidden=[4, 3], seed=7)
         if algorithm == 'lm':
             networks.train_lm(model, x, y, x_val=x[::3], y_val=y[::3], epochs=20, subsample=64,
-                        resample_every=5, seed=7, threads=1)
+                              resample_every=5, seed=7, threads=1)
         else:
             networks.train_adam_lbfgs(model, x, y, x_val=x[::3], y_val=y[::3], adam_steps=50,
-                                batch=32, lbfgs_iters=20, val_every=10, seed=7, threads=1)
+                                      batch=32, lbfgs_iters=20, val_every=10, seed=7, threads=1)
         thetas.append(model.theta.detach().numpy().copy())
     np.testing.assert_array_equal(thetas[0], thetas[1])
 
@@ -155,7 +155,7 @@ NN2_MAP_BOUND = 0.005
 def test_shipped_nn_on_fresh_maps(fresh_maps, q_max, bound):
     s = load_surrogate('nn')
     maps = fresh_maps if q_max == 6e-5 else heldout_maps(3, q_max_m3_s=q_max, n_q=15,
-                                                            seed=777)
+                                                         seed=777)
     for xs, q, lap, clr, p12 in maps:
         pred = s.p12(xs[:, None], q[None, :], lap, clr)
         assert relative_error(pred, p12) < bound

@@ -138,7 +138,7 @@ def test_graph_runs_the_valve_test_and_the_monitor_reads_the_wear(eha_graph, pro
 # --- pre-flight check -------------------------------------------------------------------------
 
 from eha_ros.physics.maintenance import (PREFLIGHT_PROFILE, PREFLIGHT_S,  # noqa: E402
-                                        PreflightCheck, preflight_command, run_preflight)
+                                         PreflightCheck, preflight_command, run_preflight)
 
 
 def test_preflight_schedule_follows_its_profile():

@@ -202,7 +202,7 @@ class InServiceEstimator:
         sigma2 = cost / dof
         try:
             cov = np.linalg.inv(jac.T @ jac) * sigma2 if jac is not None else np.full((2, 2),
-                                                                                        np.nan)
+                                                                                      np.nan)
         except np.linalg.LinAlgError:
             cov = np.full((2, 2), np.inf)
         std = np.sqrt(np.abs(np.diag(cov))) * 1e-6
@@ -214,5 +214,3 @@ class InServiceEstimator:
                               pressure_residual_pa=float(np.sqrt(cost / xs.size) * scale),
                               samples_used=int(xs.size), method=self.method,
                               nominal_residual_pa=float(np.sqrt(np.mean(nominal ** 2))))
-
-

@@ -6,8 +6,9 @@ Network
     134 inputs (133 pressures [Pa] and the flow [m^3/s]), each min-max normalised to [-1, 1]
     on the training split; tanh hidden layers; 2 linear outputs, the clearance and the overlap,
     min-max normalised over the training split (the wear ranges of DB4).  The shipped default
-    (``diag.npz``, :data:`eha_ros.training.valve_test.DIAG_SETTINGS`) has two hidden layers of 64 trained by Adam then
-    L-BFGS; the reference's network (one hidden layer of 10, Levenberg-Marquardt,
+    (``diag.npz``, :data:`eha_ros.training.valve_test.DIAG_SETTINGS`) has two hidden layers
+    of 64 trained by Adam then L-BFGS; the reference's network (one hidden layer of 10,
+    Levenberg-Marquardt,
     :data:`eha_ros.training.valve_test.DIAG_THESIS_SETTINGS`) is trained alongside and its
     held-out errors are recorded in the artefact's metadata (``alternatives``) beside the
     default's (``errors``).
@@ -45,15 +46,16 @@ from eha_ros.physics import PlantParams, default_params
 from eha_ros.physics.maps import WEAR_RANGES, fluid_hash
 from eha_ros.physics.params import ParameterError
 
-__all__ = ['ValveTestEstimator', 'WearEstimate', 'DiagnosticModel', 'load_diagnostic', 'estimate_wear',
-           'estimate_wear_batch', 'estimate_wear_map', 'canonical_curves', 'OUTPUT_NAMES',
-           'OUTPUT_UNITS']
+__all__ = ['ValveTestEstimator', 'WearEstimate', 'DiagnosticModel', 'load_diagnostic',
+           'estimate_wear', 'estimate_wear_batch', 'estimate_wear_map', 'canonical_curves',
+           'OUTPUT_NAMES', 'OUTPUT_UNITS']
 
 #: The network's outputs, in order (the reference's order: clearance, then overlap).
 OUTPUT_NAMES = ('radial_clearance_m', 'overlap_m')
 OUTPUT_UNITS = ('m', 'm')
 #: ``python -m`` argument that rebuilds ``diag.npz``
 REBUILD = 'eha_ros.training.valve_test'
+
 
 @dataclasses.dataclass
 class WearEstimate:
@@ -106,7 +108,7 @@ class DiagnosticModel:
             raise ArtefactError(f'diagnostic artefact: {exc}') from None
         if in_norm.shape != (2, sizes[0]) or xs.size + 1 != sizes[0]:
             raise ArtefactError('diagnostic artefact: normalisation or spool grid do not '
-                                 'match the layer widths')
+                                'match the layer widths')
         return cls(xs, in_norm, out_norm, weights, meta)
 
 
@@ -256,7 +258,7 @@ class ValveTestEstimator:
         clr, lap = float(np.median(c)), float(np.median(o))
         lo, hi = WEAR_RANGES['radial_clearance_m']
         model_params = replace(self.params, radial_clearance_m=float(np.clip(clr, lo * 0.5,
-                                                                              hi * 2)),
+                                                                             hi * 2)),
                                overlap_supply_m=lap, overlap_return_m=lap)
         r2, n = 0.0, 0
         for q, xs, p in curves:

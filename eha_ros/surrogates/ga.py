@@ -110,5 +110,3 @@ def make_ga(coefficients, xs_max_m: float, q_max_m3_s: float = FLOW_MAX_M3_S,
     meta = dict(meta or {})
     meta.setdefault('kind', 'ga')
     return FluidSurrogate(name=name, kernel=ga_kernel, data=(c, norm), meta=meta)
-
-

@@ -16,11 +16,11 @@ closes the recording and prints the summary of what ran.
 
 Parameters, lowest precedence first: the nodes' defaults, ``--params-file`` (ROS 2's
 ``/node: ros__parameters:`` form, e.g. the installed ``config/graph.yaml``; ``/**`` applies to
-every node that declares the parameter, and one that no node declares is refused), the options (``--scenario``, ``--model``, ``--mode``, ``--seed``, ``--rate``,
-``--dt``), then ``--set node.name=value``. The harness owns the timing and start-up
-parameters (``mode``, ``use_sim_time``, ``handshake_nodes``, ...): from a params file,
-``scenario``, ``model``, ``mode``, ``rate_hz``, ``dt_s`` and ``seed`` are taken as the options'
-defaults.
+every node that declares the parameter, and one that no node declares is refused), the
+options (``--scenario``, ``--model``, ``--mode``, ``--seed``, ``--rate``, ``--dt``), then
+``--set node.name=value``. The harness owns the timing and start-up parameters (``mode``,
+``use_sim_time``, ``handshake_nodes``, ...): from a params file, ``scenario``, ``model``,
+``mode``, ``rate_hz``, ``dt_s`` and ``seed`` are taken as the options' defaults.
 
 Events (``--event T:node.parameter=value``, repeatable; a scenario's ``events:``) are handed to
 the plant or the controller before the run and take effect at the first tick whose time is at

@@ -34,8 +34,9 @@ from eha_ros.surrogates.base import relative_error
 from eha_ros.physics.maps import (FLOW_MAX_M3_S, WEAR_RANGES, fluid_hash, spool_grid,
                                   transient_map)
 
-__all__ = ['DatabaseSpec', 'Database', 'DATABASES', 'build_database', 'load_database', 'cache_dir', 'get_database', 'DatabaseError',
-           'random_wear', 'maps_at', 'heldout_maps']
+__all__ = ['DatabaseSpec', 'Database', 'DATABASES', 'build_database', 'load_database',
+           'cache_dir', 'get_database', 'DatabaseError', 'random_wear', 'maps_at', 'heldout_maps',
+           'map_errors']
 
 #: Narrower flow range of DB3, around the flows of small commands.
 FLOW_MAX_NARROW_M3_S = 1.5e-5
@@ -238,7 +239,6 @@ def main(argv=None) -> int:
     return 0
 
 
-
 def random_wear(n_maps: int, rng: np.random.Generator, wear=None):
     """``(overlap_m, clearance_m)`` arrays: ``n_maps`` pairs drawn uniformly inside
     :data:`WEAR_RANGES` from ``rng`` (overlap first), or the given ``wear`` pairs."""
@@ -286,6 +286,8 @@ def heldout_maps(n_maps: int = 1, *, seed: int = 0, params: PlantParams | None =
         q_m3_s = (np.sort(rng.uniform(-q_max_m3_s, q_max_m3_s, n_q)) if random_flows
                   else np.linspace(-q_max_m3_s, q_max_m3_s, n_q))
     return maps_at(np.asarray(xs_m, dtype=float), np.asarray(q_m3_s, dtype=float), lap, clr, p)
+
+
 def map_errors(model, maps) -> np.ndarray:
     """:func:`relative_error` of each map: ``model(xs, q, overlap, clearance)`` broadcasts
     (e.g. :meth:`FluidSurrogate.p12`); ``maps`` as :func:`.database.heldout_maps` returns."""

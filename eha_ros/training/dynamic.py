@@ -32,7 +32,7 @@ from eha_ros.physics import PlantParams, default_params
 from eha_ros.artefacts import models_dir, save_artefact
 from eha_ros.surrogates.registry import load_surrogate
 from eha_ros.surrogates.dynamic import (DNN_WIDTH, DP_MAX_PA, EDGE_PARAMETERS, GA_GENES, dnn_features,
-                      edge_conductance, edge_flows, edge_hash, log_axis, valid_range)
+                                        edge_conductance, edge_flows, edge_hash, log_axis, valid_range)
 from eha_ros.surrogates.nn import fit_output
 
 __all__ = ['DLUT_GRID', 'DNN_SETTINGS', 'DGA_SETTINGS', 'sample_points', 'loop_points',
@@ -126,7 +126,7 @@ def chamber_errors(surrogate, params: PlantParams | None = None, wear=None, n_xs
     from eha_ros.surrogates.dynamic import hf_chamber_flows
     p = params if params is not None else default_params()
     wear = wear if wear is not None else [(p.overlap_supply_m, p.radial_clearance_m),
-                                         (-1.3e-6, 1.7e-6), (4.1e-6, 4.6e-6)]
+                                          (-1.3e-6, 1.7e-6), (4.1e-6, 4.6e-6)]
     xs = spool_grid(n_xs, p.spool_stroke_m)
     pp = np.linspace(p.vapour_pressure_pa, 1.2 * p.supply_pressure_pa, n_p)
     out = {}

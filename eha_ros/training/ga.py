@@ -426,7 +426,7 @@ def build_artefact(params: PlantParams | None = None, path: Path | None = None,
                'initial_error': float(coefficient_errors(THESIS_INITIAL, x, q, p12)[0])},
         'gradient': grad,
         'training': {'database': 'DB5', 'wear': {'overlap_m': float(db.overlap_m[0]),
-                                                'clearance_m': float(db.clearance_m[0])},
+                                                 'clearance_m': float(db.clearance_m[0])},
                      'points': int(p12.size),
                      'heldout': 'nominal map at the midpoints of the DB5 grid'},
         'limits': 'no wear inputs (fitted at nominal wear; overlap and clearance ignored); '

@@ -39,8 +39,8 @@ from eha_ros.surrogates.nn import (ASINH, INPUT_NAMES, INPUT_UNITS, SPOOL_GRID_D
 from eha_ros.training.database import Database, get_database, heldout_maps, map_errors
 from eha_ros.training.networks import fit_network, map_split
 
-__all__ = ['network_map_errors', 'db_maps', 'train_fluid_network', 'build_artefacts', 'NN_SETTINGS',
-           'NN2_SETTINGS']
+__all__ = ['network_map_errors', 'db_maps', 'train_fluid_network', 'build_artefacts',
+           'NN_SETTINGS', 'NN2_SETTINGS']
 
 
 # --- data and errors ------------------------------------------------------------------------

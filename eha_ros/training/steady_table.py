@@ -19,6 +19,7 @@ from eha_ros.physics.maps import WEAR_RANGES, fluid_hash, steady_map
 
 __all__ = ['build_steady_table']
 
+
 def build_steady_table(params: PlantParams | None = None, progress=print) -> SteadyTable:
     """Solve the steady state at every node (numba, all cores)."""
     p = params if params is not None else default_params()
@@ -42,9 +43,9 @@ def main():
     t0 = time.perf_counter()
     t = build_steady_table(p)
     save_artefact(models_dir('health') / TABLE_FILE, (t.overlap_m, t.clearance_m, t.xs_m, t.q_m3_s,
-                                               t.p12_pa.astype(np.float32)),
-        {'kind': 'steady_table', 'fluid_hash': fluid_hash(p),
-         'build_s': round(time.perf_counter() - t0, 1)})
+                                                      t.p12_pa.astype(np.float32)),
+                  {'kind': 'steady_table', 'fluid_hash': fluid_hash(p),
+                   'build_s': round(time.perf_counter() - t0, 1)})
 
 
 if __name__ == '__main__':
