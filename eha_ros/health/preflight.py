@@ -13,26 +13,18 @@ Features (:func:`preflight_features`)
     (5 x 10): 770 numbers, standardised on the training set.
 
 Network and uncertainty
-    An ensemble of :data:`FAULT_SETTINGS` ``members`` multilayer perceptrons (tanh), each
+    An ensemble of multilayer perceptrons (tanh), each
     with two outputs per parameter - mean and log-variance of the parameter normalised to its
     range - trained by Adam on the Gaussian negative log-likelihood (after a mean-squared
     warm-up).  The estimate is the ensemble mean; its variance is the members' mean variance
     plus the variance of their means.  Then per parameter a calibration factor (at least 1)
     scales the standard deviation so that 95 % of the validation cases, and 95 % of 200 further
-    2-3-fault combinations (:func:`combination_cases`, stream 13), lie within 2 sigma: the
-    stated deviation is never tighter than what held-out data showed.
+    2-3-fault combinations (a separate stream), lie within 2 sigma: the stated deviation is
+    never tighter than what held-out data showed.
 
-Data (:func:`generate`)
-    The pre-flight check on the high-fidelity plant (:func:`eha_ros.physics.maintenance.
-    run_preflight`, 1 us step) at wear points drawn independently per case from a seeded
-    stream: half with every parameter uniform over its range, half with each degraded with
-    probability 0.3 and nominal otherwise (so the nominal valve is well covered); the torque
-    motor's noise seed drawn too.  Dynamic frictions follow their breakaway values at the
-    nominal ratio 0.5.  Training, validation and the benchmark's test cases come from
-    different streams.
-
-Build: ``nice python -m eha_ros.training.preflight`` (data about 4 min on 2 cores, training a
-few minutes) writes ``models/faults.npz``.  Inference is numpy only.
+Data, training and calibration: :mod:`eha_ros.training.preflight`
+(``nice python -m eha_ros.training.preflight`` writes ``models/faults.npz``).  Inference is
+numpy only.
 """
 
 from __future__ import annotations
