@@ -208,7 +208,7 @@ def test_graph_runs_the_preflight_check_live_equals_offline(eha_graph, tmp_path)
     import sys
     from pathlib import Path
 
-    from eha_ros.recording.mcap_io import McapReader
+    from eha_ros.recording.reader import McapReader
     from eha_ros.surrogates.monitor import ITEMS
     wear = {'demagnetisation': 0.3, 'offset_a': 5e-4}
     path = tmp_path / 'preflight.mcap'
