@@ -531,6 +531,75 @@ def test_recorder_refuses_existing_output_and_unknown_topic(ros_env, tmp_path):
     assert not (tmp_path / 'new.mcap').exists()
 
 
+@pytest.mark.parametrize('name, value, words', [
+    ('queue_depth', 0, 'queue_depth must be >= 1, got 0'),
+    ('chunk_size', 0, 'chunk_size must be >= 1, got 0'),
+    ('flush_interval_s', 0.0, 'flush_interval_s must be > 0, got 0.0'),
+    ('compression', 'gzip', "compression must be one of auto, zstd, lz4, none, got 'gzip'"),
+    ('max_bag_size_b', -1, 'max_bag_size_b must be >= 0, got -1'),
+    ('snapshot_s', -1.0, 'snapshot_s must be >= 0, got -1.0'),
+    ('batch_period_s', 0.5, 'Parameter batch_period_s out of range'),
+    ('thread_priority', 100, 'Parameter thread_priority out of range'),
+    ('queue_depth', 'ten', 'queue_depth'),
+])
+def test_recorder_refuses_a_bad_parameter_before_creating_its_file(ros_env, tmp_path, name,
+                                                                   value, words):
+    """Every bad value is refused at construction (as the other nodes refuse theirs), with the
+    parameter named, and no file is created."""
+    import rclpy
+    from rclpy.exceptions import ParameterException
+    from rclpy.parameter import Parameter
+
+    from eha_ros.recording.recorder import Recorder
+
+    output = tmp_path / 'run.mcap'
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        with pytest.raises((ValueError, ParameterException)) as err:
+            Recorder(context=context, parameter_overrides=[
+                Parameter('output', value=str(output)), Parameter(name, value=value)])
+    finally:
+        rclpy.try_shutdown(context=context)
+    assert words in str(err.value)
+    assert '\n' not in str(err.value)
+    assert not output.exists()
+
+
+def test_recorder_refuses_snapshot_with_split_and_changes_while_running(ros_env, tmp_path):
+    """Snapshot mode with a split is refused; a recorder's parameters cannot change while it
+    records (set_parameters is refused, the value kept); the command line says which."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from eha_ros.recording.recorder import Recorder
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        with pytest.raises(ValueError, match='no split with it'):
+            Recorder(context=context, parameter_overrides=[
+                Parameter('snapshot_s', value=1.0), Parameter('max_bag_size_b', value=100)])
+        node = Recorder(context=context, parameter_overrides=[
+            Parameter('snapshot_s', value=1.0), Parameter('output', value=str(tmp_path / 'a'))])
+        try:
+            result, = node.set_parameters([Parameter('queue_depth', value=5)])
+            assert not result.successful
+            assert result.reason == 'queue_depth cannot change while running'
+            assert node.get_parameter('queue_depth').value == 1000
+        finally:
+            node.close()
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+    bad = subprocess.run([str(BIN / 'recorder'), '-o', str(tmp_path / 'x.mcap'), '--ros-args',
+                          '-p', 'compression:=gzip'], env=ros_env, cwd=tmp_path, text=True,
+                         capture_output=True, timeout=PROCESS_TIMEOUT_S)
+    assert bad.returncode == 2 and 'compression must be one of' in bad.stderr
+    _one_line_error(bad.stderr, 'recorder')
+    assert not list(tmp_path.iterdir())
+
+
 def test_recorder_counts_messages_lost_while_stalled(ros_env, tmp_path):
     """A real gap: the recorder is frozen (SIGSTOP) while a publisher that keeps only its last
     sample (reliable, depth 1) sends a burst; the samples it overwrote never arrive."""
