@@ -13,9 +13,12 @@ what the publishers' sequence numbers say it missed.  The graph starts only when
 endpoints, the collector's included, have matched their peers (the start-up handshake,
 :mod:`eha_ros.nodes.handshake`).  Example::
 
-    from eha_ros.harness import GraphConfig, run_graph
+    from eha_ros.harness import GraphConfig, GraphRun, run_graph
     result = run_graph(GraphConfig(scenario='step_0p1', model='hf', mode='lockstep'))
     result.state['jack_position_m']
+    with GraphRun(GraphConfig(scenario='step_0p1')) as run:  # the same in steps
+        run.pids             # {node: pid} of the node processes
+        result = run.wait()  # the nodes are stopped, the recording (if any) complete
 
 In the tests, the ``eha_graph`` fixture (``test/conftest.py``) does the same in an isolated
 ROS domain.
@@ -36,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ['GraphConfig', 'GraphResult', 'GraphError', 'GraphConfigError', 'GraphDataLoss',
-           'run_graph', 'declared_parameters', 'COLLECTOR']
+           'GraphRun', 'run_graph', 'declared_parameters', 'COLLECTOR']
 
 STATE_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_s',
                 'spool_position_m', 'flapper_position_m', 'p1_pa', 'p2_pa', 'p12_pa',
@@ -334,6 +337,7 @@ class _Collector:
                                  ServovalveCommand)
         from eha_ros.nodes.handshake import Handshake
         from eha_ros.recording.definitions import SequenceGapCounter
+        from eha_ros.nodes.common import stamp_to_ns
         self.node = Node(COLLECTOR, context=context, start_parameter_services=False)
         self.data_node = Node(COLLECTOR + '_data', context=context,
                               start_parameter_services=False)
@@ -358,21 +362,18 @@ class _Collector:
             for f in STATE_FIELDS:
                 cols[f].append(getattr(msg, f))
             cols['arrival_s'].append(now)
-            cols['stamp_ns'].append(msg.header.stamp.sec * 1_000_000_000
-                                    + msg.header.stamp.nanosec)
+            cols['stamp_ns'].append(stamp_to_ns(msg.header.stamp))
             cols['tick'].append(msg.tick)
             cols['status'].append(msg.status)
             cols['valve_test_point'].append(msg.valve_test_point)
             cols['valve_test_point_end'].append(int(msg.valve_test_point_end))
 
         def on_command(msg, now):
-            self.command_cols['stamp_ns'].append(msg.header.stamp.sec * 1_000_000_000
-                                                 + msg.header.stamp.nanosec)
+            self.command_cols['stamp_ns'].append(stamp_to_ns(msg.header.stamp))
             self.command_cols['position_setpoint_m'].append(msg.position_setpoint_m)
 
         def on_current(msg, now):
-            self.current_cols['stamp_ns'].append(msg.header.stamp.sec * 1_000_000_000
-                                                 + msg.header.stamp.nanosec)
+            self.current_cols['stamp_ns'].append(stamp_to_ns(msg.header.stamp))
             self.current_cols['current_command_a'].append(msg.current_command_a)
             self.current_cols['arrival_s'].append(now)
 
@@ -427,8 +428,9 @@ class _Collector:
         self.node.destroy_node()
 
     def _on_event(self, msg):
+        from eha_ros.nodes.common import stamp_to_ns
         self.events.append({
-            'stamp_ns': msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec,
+            'stamp_ns': stamp_to_ns(msg.header.stamp),
             'tick_index': int(msg.tick_index), 'node': msg.node, 'source': msg.source,
             'scheduled_time_s': float(msg.scheduled_time_s),
             'changes': dict(zip(msg.parameter_names, (float(v) for v in msg.parameter_values)))})
@@ -453,19 +455,22 @@ class _Collector:
         return (last in self.current_cols['stamp_ns'][-3:]
                 and last in self.command_cols['stamp_ns'][-3:])
 
-    def result(self, config, wall, discovery_s):
+    def result(self, config, t0: float) -> 'GraphResult':
+        """What arrived; ``t0``: when the nodes were launched (``time.monotonic``)."""
+        start = self.handshake.start_monotonic_ns() * 1e-9 if self.handshake.started else t0
+        arrivals = self.state_cols['arrival_s']
+        wall = max(0.0, (arrivals[-1] if len(arrivals) else time.monotonic()) - start)
+
         def columns(cols):
             """Arrays; in lockstep a tick the plant re-sent (and the controller's repeated
             answer) carries the same content: the first of each stamp is kept."""
-            out = {k: np.frombuffer(v, dtype=np.float64 if v.typecode == 'd' else np.int64)
-                   .copy() if len(v) else np.zeros(0, np.float64 if v.typecode == 'd'
-                                                    else np.int64) for k, v in cols.items()}
+            out = {k: np.array(v, dtype=np.float64 if v.typecode == 'd' else np.int64)
+                   for k, v in cols.items()}
             if config.mode == 'lockstep' and out['stamp_ns'].size:
                 _, first = np.unique(out['stamp_ns'], return_index=True)
                 keep = np.sort(first)
                 out = {k: v[keep] for k, v in out.items()}
             return out
-        messages = {t: c.received for t, c in self.counters.items()}
         state = columns(self.state_cols)
         state['valve_test_point_end'] = state['valve_test_point_end'].astype(bool)
         resent = self.n_states - state['tick'].size
@@ -475,7 +480,8 @@ class _Collector:
                                  servo['stamp_ns'])
         return GraphResult(state, command, servo, list(self.health), wall, config, resent,
                            diagnostics=dict(self.diagnostics), events=list(self.events),
-                           discovery_s=discovery_s, messages=messages,
+                           discovery_s=max(0.0, start - t0),
+                           messages={t: c.received for t, c in self.counters.items()},
                            lost={t: c.lost for t, c in self.counters.items()},
                            missed_at_start={t: c.missed_at_start
                                             for t, c in self.counters.items()},
@@ -498,204 +504,272 @@ def _missing_ticks(config, state_ns, command_ns, servo_ns) -> dict:
     return out
 
 
-def run_graph(config: GraphConfig | None = None, processes: bool = True, env: dict | None = None,
-              timeout_s: float = 300.0, log_dir: str | None = None, stop=None,
-              on_start=None, delays: dict | None = None,
-              delay_after_start: bool = False) -> GraphResult:
-    """Run ``config`` until the plant has simulated its duration; see the module docstring.
+class GraphRun:
+    """A run of the graph as a context manager (see the module docstring): entering starts the
+    nodes, each after its ``delays`` entry, and the collector; :meth:`wait` runs the scenario
+    to its end and returns the :class:`GraphResult`; leaving stops every node and restores
+    this process, also on an exception.
 
     ``env`` (e.g. from :func:`eha_ros.isolation.ros_environment`) sets ``ROS_DOMAIN_ID`` and
     ``ROS_LOG_DIR``; default: the current environment.  ``stop``: a callable checked every
     50 ms; when it returns true the run ends early (``GraphResult.interrupted``) and every node
     is stopped as after a complete run.  ``on_start(pids)``: called once the nodes are started,
-    with ``{name: pid}`` of the node processes.  ``delays``: ``{node: seconds}`` to launch a
-    node (or the collector, :data:`COLLECTOR`) that long after the others, e.g. to test late
-    discovery; with ``delay_after_start``, that long after the graph's start (seen by an
-    observer node), e.g. to show what a listener left out of the handshake misses.
+    with :attr:`pids`.  ``delays``: ``{node: seconds}`` to launch a node (or the collector,
+    :data:`COLLECTOR`) that long after the others, e.g. to test late discovery; with
+    ``delay_after_start``, that long after the graph's start (seen by an observer node), e.g.
+    to show what a listener left out of the handshake misses.
 
-    Raises
-    ------
-    GraphConfigError
-        The configuration names an unknown node, parameter or event target (nothing starts).
-    GraphError
-        A node exits early, the start-up handshake does not complete, or the run stalls for
-        ``timeout_s``.
-    GraphDataLoss
-        A lockstep run that is not :attr:`GraphResult.complete` (the result is attached).
+    Raises :class:`GraphConfigError` (from the constructor: nothing starts) for an unknown
+    node, parameter or event target; :class:`GraphError` when a node exits early, the start-up
+    handshake does not complete or the run stalls for ``timeout_s``; :class:`GraphDataLoss`
+    (from :meth:`wait`, the result attached) for a lockstep run that is not complete.
     """
-    import rclpy
-    from rclpy.signals import SignalHandlerOptions
 
-    from eha_ros.graph import STATUS_DIVERGED
-    from eha_ros.nodes.common import make_executor
+    def __init__(self, config: GraphConfig | None = None, processes: bool = True,
+                 env: dict | None = None, timeout_s: float = 300.0, log_dir: str | None = None,
+                 stop=None, on_start=None, delays: dict | None = None,
+                 delay_after_start: bool = False):
+        import rclpy
+        self.config = config = config or GraphConfig()
+        self.env = dict(os.environ if env is None else env)
+        self.duration_ns = round(config.resolved_duration() * 1e9)
+        self.params = config.node_parameters()
+        if config.record and Path(config.record).exists():
+            raise GraphError(f'{config.record} exists: refusing to overwrite it')
+        self.delays = dict(delays or {})
+        unknown = set(self.delays) - set(self.params) - {COLLECTOR}
+        if unknown:
+            raise GraphConfigError(f'delays: no node {sorted(unknown)[0]!r} in this graph')
+        self.processes, self.timeout_s, self.stop = processes, timeout_s, stop
+        self.on_start, self.delay_after_start = on_start, delay_after_start
+        self.log_dir = Path(log_dir or tempfile.mkdtemp(prefix='eha_graph_'))
+        self.procs, self.nodes = {}, []  # node processes: name -> (Popen, log); nodes here
+        self.context = rclpy.Context()
+        self.executor = self.collector = self.observer = None
+        self.interrupted = False  # the run was stopped (``stop``) before its end
 
-    config = config or GraphConfig()
-    env = dict(os.environ if env is None else env)
-    duration_ns = round(config.resolved_duration() * 1e9)
-    params = config.node_parameters()
-    if config.record and Path(config.record).exists():
-        raise GraphError(f'{config.record} exists: refusing to overwrite it')
-    delays = dict(delays or {})
-    unknown = set(delays) - set(params) - {COLLECTOR}
-    if unknown:
-        raise GraphConfigError(f'delays: no node {sorted(unknown)[0]!r} in this graph')
-    domain = int(env.get('ROS_DOMAIN_ID', '0'))
-    log_dir = Path(log_dir or tempfile.mkdtemp(prefix='eha_graph_'))
-    saved = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_LOG_DIR')}
-    procs, nodes = {}, []
-    context = rclpy.Context()
-    executor = collector = None
-    failure = None  # why a node failed, raised once everything is stopped
-    interrupted = False
-    os.environ.update({k: env[k] for k in saved if k in env})
-    cpus_before = os.sched_getaffinity(0)
-    try:
+    @property
+    def pids(self) -> dict:
+        """``{name: pid}`` of the node processes started so far."""
+        return {name: proc.pid for name, (proc, _) in self.procs.items()}
+
+    def __enter__(self) -> 'GraphRun':
+        try:
+            self._open()
+        except BaseException:
+            self._close()
+            raise
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._close()
+
+    def _open(self) -> None:
+        """Start this process's ROS context, then the nodes (and the collector) due now."""
+        import rclpy
+        from rclpy.signals import SignalHandlerOptions
+
+        from eha_ros.nodes.common import make_executor
+        self._saved_env = {k: os.environ.get(k) for k in ('ROS_DOMAIN_ID', 'ROS_LOG_DIR')}
+        os.environ.update({k: self.env[k] for k in self._saved_env if k in self.env})
+        self._cpus_before = os.sched_getaffinity(0)
         # no rclpy signal handlers: SIGINT reaches the caller (``stop``, KeyboardInterrupt)
-        rclpy.init(context=context, domain_id=domain,
+        rclpy.init(context=self.context, domain_id=int(self.env.get('ROS_DOMAIN_ID', '0')),
                    signal_handler_options=SignalHandlerOptions.NO)
-        executor = make_executor(context)
-        if config.rt:  # the collector: a listener that other work must not starve
+        self.executor = make_executor(self.context)
+        if self.config.rt:  # the collector: a listener that other work must not starve
             from eha_ros.realtime import apply_realtime, RT_LISTENER_DEFAULTS
             for line in apply_realtime(RT_LISTENER_DEFAULTS):
                 print(f'{COLLECTOR}: warning: {line}', file=sys.stderr)
-        t0 = time.monotonic()
-        bindir = Path(sys.executable).parent
-        pending = sorted(((delays.get(name, 0.0), name) for name in list(params) + [COLLECTOR]),
-                         key=lambda x: x[0])
-        observer = None
-        if delay_after_start and delays:
+        self.t0 = time.monotonic()
+        self._pending = sorted(((self.delays.get(name, 0.0), name)
+                                for name in list(self.params) + [COLLECTOR]), key=lambda x: x[0])
+        if self.delay_after_start and self.delays:
             from rclpy.node import Node
 
             from eha_ros.nodes.handshake import Handshake
-            observer = Node(COLLECTOR + '_observer', context=context,
-                            start_parameter_services=False)
-            observer.handshake = Handshake(observer)
-            executor.add_node(observer)
-            nodes.append(observer)
+            self.observer = Node(COLLECTOR + '_observer', context=self.context,
+                                 start_parameter_services=False)
+            self.observer.handshake = Handshake(self.observer)
+            self.nodes.append(self.observer)
+            self.executor.add_node(self.observer)
+        while self._pending and self._pending[0][0] <= 0:
+            self._launch(self._pending.pop(0)[1])
+        if self.on_start is not None:
+            self.on_start(self.pids)
+        self._last_progress, self._last_count = time.monotonic(), 0
+        self._start_deadline = self.t0 + self.config.handshake_timeout_s + _START_MARGIN_S
 
-        def due(delay):
-            if observer is None:
-                return time.monotonic() - t0 >= delay
-            return (observer.handshake.started
-                    and time.monotonic_ns() >= observer.handshake.start_monotonic_ns()
-                    + delay * 1e9)
+    def _due(self, delay: float) -> bool:
+        """Whether a node delayed by ``delay`` s falls due (after the start with an observer)."""
+        if self.observer is None:
+            return time.monotonic() - self.t0 >= delay
+        handshake = self.observer.handshake
+        return handshake.started and time.monotonic_ns() >= (handshake.start_monotonic_ns()
+                                                             + delay * 1e9)
 
-        def launch(name):
-            nonlocal collector
-            if name == COLLECTOR:
-                collector = _Collector(context)
-                executor.add_node(collector.node)
-            elif processes or name == 'recorder':  # the recorder: a process in either mode
-                cmd = [str(bindir / name), '--ros-args'] + [
-                    a for k, v in params[name].items() for a in ('-p', f'{k}:={_ros_arg(v)}')]
-                out = open(log_dir / f'{name}.log', 'wb')
-                procs[name] = (subprocess.Popen(cmd, env=env, stdout=out,
-                                                stderr=subprocess.STDOUT, cwd=log_dir), out)
-            else:
-                node = _node_class(name)(context=context, parameter_overrides=[
-                    Parameter(k, value=v) for k, v in params[name].items()])
-                from eha_ros.nodes.common import refuse_undeclared
-                refuse_undeclared(node)
-                nodes.append(node)
-                executor.add_node(node)
-
+    def _launch(self, name: str) -> None:
+        """Start ``name`` in this process or (the recorder always) as its console script."""
         from rclpy.parameter import Parameter
-        while pending and pending[0][0] <= 0:
-            launch(pending.pop(0)[1])
-        if on_start is not None:
-            on_start({name: proc.pid for name, (proc, _) in procs.items()})
-        last_progress, last_count = time.monotonic(), 0
-        start_deadline = t0 + config.handshake_timeout_s + _START_MARGIN_S
-        while True:
-            executor.spin_once(timeout_sec=_Collector.POLL_S)
-            if collector is not None:
-                collector.poll()
-            now = time.monotonic()
-            while pending and due(pending[0][0]):
-                launch(pending.pop(0)[1])
-            if stop is not None and stop():
-                interrupted = True
+
+        from eha_ros.nodes.common import refuse_undeclared
+        if name == COLLECTOR:
+            self.collector = _Collector(self.context)
+            self.executor.add_node(self.collector.node)
+        elif self.processes or name == 'recorder':
+            cmd = [str(Path(sys.executable).parent / name), '--ros-args'] + [
+                a for k, v in self.params[name].items() for a in ('-p', f'{k}:={_ros_arg(v)}')]
+            out = open(self.log_dir / f'{name}.log', 'wb')
+            self.procs[name] = (subprocess.Popen(cmd, env=self.env, stdout=out,
+                                                 stderr=subprocess.STDOUT, cwd=self.log_dir), out)
+        else:
+            node = _node_class(name)(context=self.context, parameter_overrides=[
+                Parameter(k, value=v) for k, v in self.params[name].items()])
+            refuse_undeclared(node)
+            self.nodes.append(node)
+            self.executor.add_node(node)
+
+    def wait(self) -> GraphResult:
+        """Run until the plant has simulated its duration (or diverged, or ``stop``), let the
+        last messages arrive, stop the node processes; returns what the collector received."""
+        while not self._step():
+            pass
+        self._drain()
+        result = self.collector.result(self.config, self.t0)
+        result.interrupted = self.interrupted
+        failure = self._stop_processes()
+        if failure is not None:
+            raise GraphError(failure)
+        if self.config.mode == 'lockstep' and not self.interrupted and not result.complete:
+            raise GraphDataLoss(f'lockstep run incomplete: {result.loss_report()}', result)
+        return result
+
+    def _step(self) -> bool:
+        """One pass of the run: spin, take the collector's messages, launch the nodes that fell
+        due; true once the run has ended.  Raises GraphError for a failed node or a stall."""
+        from eha_ros.graph import STATUS_DIVERGED
+        self.executor.spin_once(timeout_sec=_Collector.POLL_S)
+        collector = self.collector
+        if collector is not None:
+            collector.poll()
+        while self._pending and self._due(self._pending[0][0]):
+            self._launch(self._pending.pop(0)[1])
+        if self.stop is not None and self.stop():
+            self.interrupted = True
+            return True
+        n_states = collector.n_states if collector is not None else 0
+        if n_states and (collector.last_stamp_ns >= self.duration_ns
+                         or collector.last_status == STATUS_DIVERGED):
+            return True  # the end, or diverged: the plant has stopped
+        if self._node_ended():
+            return True
+        self._check_progress(n_states)
+        return False
+
+    def _node_ended(self) -> bool:
+        """True when a node ended on a stop request (a terminal's Ctrl-C reached it before
+        ``stop`` saw it); raises GraphError for a node that failed (refused: GraphConfigError)."""
+        fatal = next((n.fatal for n in self.nodes if getattr(n, 'fatal', None)), None)
+        if fatal:
+            raise GraphError(fatal)
+        exited = [name for name, (proc, _) in self.procs.items() if proc.poll() is not None]
+        if exited and self.stop is not None and self.stop():
+            self.interrupted = True
+            return True
+        if exited:
+            name, proc = exited[0], self.procs[exited[0]][0]
+            error = GraphConfigError if proc.returncode == 2 else GraphError  # 2: refused
+            raise error(_exit_message(name, proc.returncode, self.log_dir))
+        return False
+
+    def _check_progress(self, n_states: int) -> None:
+        """Raise GraphError for a handshake not complete in time or a stall of ``timeout_s``."""
+        now = time.monotonic()
+        if self.collector is None or not self.collector.handshake.started:
+            self._last_progress = now
+            if now > self._start_deadline:
+                problem = (evaluate_reports(self.collector, self.config)
+                           if self.collector is not None else 'the collector was never created')
+                raise GraphError(f'start-up handshake incomplete after {now - self.t0:.0f} s: '
+                                 f'{problem} (logs in {self.log_dir})')
+        elif n_states != self._last_count:
+            self._last_count, self._last_progress = n_states, now
+        elif now - self._last_progress > self.timeout_s:
+            raise GraphError(f'no plant state for {self.timeout_s:g} s (after {self._last_count} '
+                             f'states): the graph stalled (logs in {self.log_dir})')
+
+    def _drain(self) -> None:
+        """Let the last tick's messages arrive: in lockstep until its command and current
+        command are in; with the health monitor until it is idle (it estimates on a worker
+        thread) and its messages are in. At most 10 s."""
+        collector, config = self.collector, self.config
+        end = time.monotonic() + 0.2
+        cap = time.monotonic() + 10.0
+        n_health = -1
+        while time.monotonic() < cap:
+            self.executor.spin_once(timeout_sec=0.02)
+            collector.poll(force=True)
+            if time.monotonic() < end:
+                continue
+            if config.mode == 'lockstep' and not collector.final_answers_in(config):
+                continue
+            busy = any(getattr(n, '_pending', 0) for n in self.nodes)
+            if not config.health or (not busy and len(collector.health) == n_health):
                 break
-            n_states = collector.n_states if collector is not None else 0
-            if n_states and collector.last_stamp_ns >= duration_ns:
-                break
-            if n_states and collector.last_status == STATUS_DIVERGED:
-                break  # diverged: the plant has stopped
-            fatal = next((n.fatal for n in nodes if getattr(n, 'fatal', None)), None)
-            if fatal:
-                raise GraphError(fatal)
-            exited = [name for name, (proc, _) in procs.items() if proc.poll() is not None]
-            if exited and stop is not None and stop():
-                interrupted = True  # the Ctrl-C reached a node before this loop saw it
-                break
-            if exited:
-                name, proc = exited[0], procs[exited[0]][0]
-                error = GraphConfigError if proc.returncode == 2 else GraphError  # 2: refused
-                raise error(_exit_message(name, proc.returncode, log_dir))
-            started = collector is not None and collector.handshake.started
-            if not started:
-                last_progress = now
-                if now > start_deadline:
-                    problem = (evaluate_reports(collector, config) if collector is not None
-                               else 'the collector was never created')
-                    raise GraphError(f'start-up handshake incomplete after '
-                                     f'{now - t0:.0f} s: {problem} (logs in {log_dir})')
-            elif n_states != last_count:
-                last_count, last_progress = n_states, now
-            elif now - last_progress > timeout_s:
-                raise GraphError(f'no plant state for {timeout_s:g} s (after {last_count} '
-                                 f'states): the graph stalled (logs in {log_dir})')
-        _drain(executor, collector, config, nodes)
-        start_mono = (collector.handshake.start_monotonic_ns() * 1e-9
-                      if collector.handshake.started else t0)
-        arrivals = collector.state_cols['arrival_s']
-        last = arrivals[-1] if len(arrivals) else time.monotonic()
-        result = collector.result(config, max(0.0, last - start_mono), max(0.0, start_mono - t0))
-        result.interrupted = interrupted
-    finally:
-        if interrupted:  # a terminal's Ctrl-C reached the nodes too: let them stop on their own
+            n_health = len(collector.health)
+            end = time.monotonic() + 0.3
+
+    def _stop_processes(self) -> str | None:
+        """Stop the node processes (SIGINT; killed after 15 s); returns why the recorder failed."""
+        if self.interrupted:  # a terminal's Ctrl-C reached the nodes too: let them stop alone
             end = time.monotonic() + _GRACE_S
-            while time.monotonic() < end and any(p.poll() is None for p, _ in procs.values()):
+            while time.monotonic() < end and any(p.poll() is None for p, _ in self.procs.values()):
                 time.sleep(0.05)
-        for name, (proc, out) in procs.items():
+        for proc, _ in self.procs.values():
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
-        for name, (proc, out) in procs.items():
+        for proc, out in self.procs.values():
             try:
                 proc.wait(timeout=15)
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
             out.close()
-        rec = procs.get('recorder')
+        rec = self.procs.get('recorder')
         if rec is not None and rec[0].returncode != 0:
-            failure = (f'recorder exited with status {rec[0].returncode}: '
-                       + _tail(log_dir / 'recorder.log'))
-        for node in nodes:
-            if executor is not None:
-                executor.remove_node(node)
-            close = getattr(node, 'close', None)
-            if close:
-                close()
+            return (f'recorder exited with status {rec[0].returncode}: '
+                    + ' | '.join(_log_lines(self.log_dir / 'recorder.log')[-3:]))
+
+    def _close(self) -> None:
+        """Stop every node, end the ROS context, restore the environment and scheduling."""
+        import rclpy
+        self._stop_processes()
+        for node in self.nodes:  # none without an executor
+            self.executor.remove_node(node)
+            getattr(node, 'close', lambda: None)()
             node.destroy_node()
-        if collector is not None:
-            collector.destroy()
-        if executor is not None:
-            executor.shutdown()
-        rclpy.try_shutdown(context=context)
-        if config.rt:
+        if self.collector is not None:
+            self.collector.destroy()
+        if self.executor is not None:
+            self.executor.shutdown()
+        rclpy.try_shutdown(context=self.context)
+        if self.config.rt:
             from eha_ros.realtime import normal_scheduling
-            normal_scheduling(cpus_before)
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-    if failure is not None:  # reached only when the run itself succeeded
-        raise GraphError(failure)
-    if config.mode == 'lockstep' and not result.interrupted and not result.complete:
-        raise GraphDataLoss(f'lockstep run incomplete: {result.loss_report()}', result)
-    return result
+            normal_scheduling(self._cpus_before)
+        os.environ.update({k: v for k, v in self._saved_env.items() if v is not None})
+        for k in (k for k, v in self._saved_env.items() if v is None):
+            os.environ.pop(k, None)
+
+
+def run_graph(config: GraphConfig | None = None, processes: bool = True, env: dict | None = None,
+              timeout_s: float = 300.0, log_dir: str | None = None, stop=None,
+              on_start=None, delays: dict | None = None,
+              delay_after_start: bool = False) -> GraphResult:
+    """Run ``config`` until the plant has simulated its duration: :class:`GraphRun` (which
+    describes the arguments and what it raises) in one call."""
+    with GraphRun(config, processes, env, timeout_s, log_dir, stop, on_start, delays,
+                  delay_after_start) as run:
+        return run.wait()
 
 
 def _node_class(name: str):
@@ -719,41 +793,14 @@ def _exit_message(name: str, code: int, log_dir: Path) -> str:
     """One line for a node process that ended early: its own error line where it printed
     one (a refused parameter, a handshake that timed out), else its log's tail."""
     log = log_dir / f'{name}.log'
-    try:
-        lines = log.read_text(errors='replace').strip().splitlines()
-    except OSError:
-        lines = []
+    lines = _log_lines(log)
     own = [line for line in lines if line.startswith(f'{name}: error:')]
-    if own:
-        return own[-1]
-    return (f'node {name} exited with status {code} before the run completed (log: {log}): '
-            + ' | '.join(lines[-3:]))
+    return own[-1] if own else (f'node {name} exited with status {code} before the run '
+                                f'completed (log: {log}): ' + ' | '.join(lines[-3:]))
 
 
-def _drain(executor, collector, config, nodes) -> None:
-    """Let the last tick's messages arrive: in lockstep until its command and current command
-    are in; with the health monitor until it is idle (it estimates on a worker thread) and
-    its messages are in. At most 10 s."""
-    end = time.monotonic() + 0.2
-    cap = time.monotonic() + 10.0
-    n_health = -1
-    while time.monotonic() < cap:
-        executor.spin_once(timeout_sec=0.02)
-        collector.poll(force=True)
-        if time.monotonic() < end:
-            continue
-        if config.mode == 'lockstep' and not collector.final_answers_in(config):
-            continue
-        busy = any(getattr(n, '_pending', 0) for n in nodes)
-        if not config.health or (not busy and len(collector.health) == n_health):
-            break
-        n_health = len(collector.health)
-        end = time.monotonic() + 0.3
-
-
-def _tail(path: Path, n: int = 3) -> str:
+def _log_lines(path: Path) -> list:
     try:
-        lines = path.read_text(errors='replace').strip().splitlines()
+        return path.read_text(errors='replace').strip().splitlines()
     except OSError:
-        return ''
-    return ' | '.join(lines[-n:])
+        return []

@@ -102,7 +102,7 @@ def sample_message(cls: type, seed: int = 0):
     return msg
 
 
-def message_to_dict(msg) -> dict:
+def message_to_bitwise_json(msg) -> dict:
     """Convert a message to JSON-compatible data that compares floats bit for bit.
 
     Floats become ``float.hex()`` strings, nested messages nested dicts, arrays lists.
@@ -181,7 +181,7 @@ def run_publisher(timeout_s: float, period_s: float = 0.05) -> int:
 def run_subscriber(timeout_s: float) -> int:
     """Print, as one JSON line, the first message received of every type.
 
-    The JSON object maps type name to :func:`message_to_dict`, plus ``eha_ros_file`` (where
+    The JSON object maps type name to :func:`message_to_bitwise_json`, plus ``eha_ros_file`` (where
     ``eha_ros`` was imported from). Returns 0, or 1 when some type was not received in time.
     """
     import rclpy
@@ -194,7 +194,7 @@ def run_subscriber(timeout_s: float) -> int:
         node = rclpy.create_node('eha_ros_test_subscriber')
         for type_name in MESSAGE_TYPES:
             def callback(msg, type_name=type_name):
-                received.setdefault(type_name, message_to_dict(msg))
+                received.setdefault(type_name, message_to_bitwise_json(msg))
             node.create_subscription(message_class(type_name), topic_name(type_name),
                                      callback, _qos())
         deadline = time.monotonic() + timeout_s

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from eha_ros.recording.mcap_io import McapReader
+from eha_ros.recording.reader import McapReader
 from eha_ros.tools.campaign import run_campaign
 from eha_ros.tools.diagnose import diagnose
 

@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from eha_ros.testing import MESSAGE_TYPES, message_class, message_to_dict, sample_message
+from eha_ros.testing import MESSAGE_TYPES, message_class, message_to_bitwise_json, sample_message
 
 # Generous limits: they only bound a hung test; discovery usually takes well under 1 s.
 DISCOVERY_TIMEOUT_S = 10.0
@@ -108,8 +108,8 @@ def test_sample_messages_differ_from_defaults():
 
     for type_name in MESSAGE_TYPES:
         cls = message_class(type_name)
-        sample = dict(leaves(message_to_dict(sample_message(cls))))
-        default = dict(leaves(message_to_dict(cls())))
+        sample = dict(leaves(message_to_bitwise_json(sample_message(cls))))
+        default = dict(leaves(message_to_bitwise_json(cls())))
         assert sample.keys() == default.keys()
         same = [path for path in sample if sample[path] == default[path] and path != '.type']
         assert not same, f'{type_name}: sample equals default in {same}'
@@ -125,7 +125,7 @@ def test_cdr_round_trip_in_process(ros_env, type_name):
     assert isinstance(data, bytes) and len(data) > 4
     back = deserialize_message(data, cls)
     assert back == msg
-    assert message_to_dict(back) == message_to_dict(msg)
+    assert message_to_bitwise_json(back) == message_to_bitwise_json(msg)
 
 
 def test_every_message_crosses_processes_intact(ros_env, tmp_path):
@@ -156,5 +156,5 @@ def test_every_message_crosses_processes_intact(ros_env, tmp_path):
     result = json.loads(sub_out.strip().splitlines()[-1])
     assert 'site-packages' in Path(result['eha_ros_file']).parts
     for type_name in MESSAGE_TYPES:
-        expected = message_to_dict(sample_message(message_class(type_name)))
+        expected = message_to_bitwise_json(sample_message(message_class(type_name)))
         assert result['messages'][type_name] == expected, type_name

@@ -25,9 +25,12 @@ import pytest
 import yaml
 
 from eha_ros import graph
-from eha_ros.recording import mcap_io
-from eha_ros.recording.mcap_io import (CorruptError, McapReader, McapWriter, NotMcapError,
-                                       scan, TruncatedError)
+from eha_ros.recording.arrays import load_topic_arrays, message_to_plain_data
+from eha_ros.recording.definitions import (CorruptError, count_sequence_gaps,
+                                           message_definition, NotMcapError, RecordingError,
+                                           SequenceGapCounter, TruncatedError, type_hash)
+from eha_ros.recording.reader import McapReader, scan
+from eha_ros.recording.writer import McapWriter
 from eha_ros.testing import sample_message
 
 DISCOVERY_TIMEOUT_S = 10.0
@@ -49,7 +52,7 @@ def _bitwise(value):
 
 
 def _fields(msg):
-    return _bitwise(mcap_io.message_to_dict(msg))
+    return _bitwise(message_to_plain_data(msg))
 
 
 def _diagnostics(seed: int = 0):
@@ -162,7 +165,7 @@ def _stop(process, sig=signal.SIGINT):
 # --- schema text ------------------------------------------------------------------------------
 
 def test_schema_text_has_every_dependency_once():
-    text = mcap_io.message_definition('eha_ros/msg/ActuatorState')
+    text = message_definition('eha_ros/msg/ActuatorState')
     share = Path(sys.prefix) / 'share'
     assert text.startswith((share / 'eha_ros/msg/ActuatorState.msg').read_text())
     assert text.count('MSG: std_msgs/Header\n') == 1
@@ -173,18 +176,18 @@ def test_schema_text_has_every_dependency_once():
     for line in text.splitlines():
         assert set(line) != {'='} or len(line) == 80
 
-    diag = mcap_io.message_definition('diagnostic_msgs/DiagnosticArray')
+    diag = message_definition('diagnostic_msgs/DiagnosticArray')
     for dep in ('diagnostic_msgs/DiagnosticStatus', 'diagnostic_msgs/KeyValue',
                 'std_msgs/Header', 'builtin_interfaces/Time'):
         assert diag.count(f'MSG: {dep}\n') == 1, dep
     assert diag.count('MSG: ') == 4
     # Time is needed by Header and by Clock: nested dependencies resolve recursively.
-    assert mcap_io.message_definition('rosgraph_msgs/msg/Clock').count('MSG: ') == 1
+    assert message_definition('rosgraph_msgs/msg/Clock').count('MSG: ') == 1
 
 
 def test_type_hash_from_installed_description():
-    assert mcap_io.type_hash('eha_ros/msg/ActuatorState').startswith('RIHS01_')
-    assert len(mcap_io.type_hash('std_msgs/msg/Header')) == len('RIHS01_') + 64
+    assert type_hash('eha_ros/msg/ActuatorState').startswith('RIHS01_')
+    assert len(type_hash('std_msgs/msg/Header')) == len('RIHS01_') + 64
 
 
 # --- round trips ------------------------------------------------------------------------------
@@ -249,7 +252,7 @@ def test_topic_arrays_for_analysis(tmp_path):
     t = 5_000_000_000 + np.arange(50) * 1_000_000
     x = np.sin(np.arange(50) / 7.0)
     _write_states(buf, t, x, 1e5 * x, 1e-4 * x, 'lut')
-    arrays = mcap_io.load_topic_arrays(buf.getvalue(), graph.TOPIC_STATE)
+    arrays = load_topic_arrays(buf.getvalue(), graph.TOPIC_STATE)
     np.testing.assert_array_equal(arrays['stamp_ns'], t)
     np.testing.assert_array_equal(arrays['jack_position_m'], x)
     np.testing.assert_array_equal(arrays['p12_pa'], 1e5 * x)
@@ -257,12 +260,12 @@ def test_topic_arrays_for_analysis(tmp_path):
     assert arrays['jack_position_m'].dtype == np.float64
     assert set(arrays['model']) == {'lut'}
     with pytest.raises(KeyError, match='/eha/command'):
-        mcap_io.load_topic_arrays(buf.getvalue(), graph.TOPIC_COMMAND)
-    with pytest.raises(mcap_io.RecordingError) as err:  # one error type for every caller
-        mcap_io.load_topic_arrays(buf.getvalue(), graph.TOPIC_COMMAND)
+        load_topic_arrays(buf.getvalue(), graph.TOPIC_COMMAND)
+    with pytest.raises(RecordingError) as err:  # one error type for every caller
+        load_topic_arrays(buf.getvalue(), graph.TOPIC_COMMAND)
     assert str(err.value).startswith('input has no topic /eha/command (topics: /eha/state')
-    with pytest.raises(mcap_io.RecordingError, match='cannot read .*missing.mcap'):
-        mcap_io.load_topic_arrays(tmp_path / 'missing.mcap', graph.TOPIC_STATE)
+    with pytest.raises(RecordingError, match='cannot read .*missing.mcap'):
+        load_topic_arrays(tmp_path / 'missing.mcap', graph.TOPIC_STATE)
 
 
 def test_writer_refuses_to_overwrite(tmp_path):
@@ -361,12 +364,12 @@ def test_not_mcap_input_raises():
     ([None, None], None, 0, 0),                         # no sequence numbers: nothing known
 ])
 def test_sequence_gap_counter(sequences, publishers, lost, missed):
-    counter = mcap_io.SequenceGapCounter()
+    counter = SequenceGapCounter()
     for seq, pub in zip(sequences, publishers or [None] * len(sequences)):
         counter.add(seq, pub)
     assert (counter.lost, counter.missed_at_start, counter.received) == (
         lost, missed, len(sequences))
-    assert mcap_io.count_sequence_gaps(sequences, publishers) == lost
+    assert count_sequence_gaps(sequences, publishers) == lost
 
 
 # --- CLI tools on bad input -------------------------------------------------------------------
@@ -504,7 +507,7 @@ def test_recorder_records_every_graph_topic(ros_env, tmp_path):
     for topic, channel in info.channels.items():
         profiles = yaml.safe_load(channel.metadata['offered_qos_profiles'])
         assert profiles and all(p['reliability'] == 'reliable' for p in profiles)
-        assert channel.metadata['topic_type_hash'] == mcap_io.type_hash(graph.TOPICS[topic])
+        assert channel.metadata['topic_type_hash'] == type_hash(graph.TOPICS[topic])
     received = {t: [] for t in graph.TOPICS}
     for rec in McapReader(output, strict=True):
         received[rec.topic].append(_fields(rec.message))
@@ -526,6 +529,75 @@ def test_recorder_refuses_existing_output_and_unknown_topic(ros_env, tmp_path):
         assert what in result.stderr
     assert existing.read_bytes() == b'precious'
     assert not (tmp_path / 'new.mcap').exists()
+
+
+@pytest.mark.parametrize('name, value, words', [
+    ('queue_depth', 0, 'queue_depth must be >= 1, got 0'),
+    ('chunk_size', 0, 'chunk_size must be >= 1, got 0'),
+    ('flush_interval_s', 0.0, 'flush_interval_s must be > 0, got 0.0'),
+    ('compression', 'gzip', "compression must be one of auto, zstd, lz4, none, got 'gzip'"),
+    ('max_bag_size_b', -1, 'max_bag_size_b must be >= 0, got -1'),
+    ('snapshot_s', -1.0, 'snapshot_s must be >= 0, got -1.0'),
+    ('batch_period_s', 0.5, 'Parameter batch_period_s out of range'),
+    ('thread_priority', 100, 'Parameter thread_priority out of range'),
+    ('queue_depth', 'ten', 'queue_depth'),
+])
+def test_recorder_refuses_a_bad_parameter_before_creating_its_file(ros_env, tmp_path, name,
+                                                                   value, words):
+    """Every bad value is refused at construction (as the other nodes refuse theirs), with the
+    parameter named, and no file is created."""
+    import rclpy
+    from rclpy.exceptions import ParameterException
+    from rclpy.parameter import Parameter
+
+    from eha_ros.recording.recorder import Recorder
+
+    output = tmp_path / 'run.mcap'
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        with pytest.raises((ValueError, ParameterException)) as err:
+            Recorder(context=context, parameter_overrides=[
+                Parameter('output', value=str(output)), Parameter(name, value=value)])
+    finally:
+        rclpy.try_shutdown(context=context)
+    assert words in str(err.value)
+    assert '\n' not in str(err.value)
+    assert not output.exists()
+
+
+def test_recorder_refuses_snapshot_with_split_and_changes_while_running(ros_env, tmp_path):
+    """Snapshot mode with a split is refused; a recorder's parameters cannot change while it
+    records (set_parameters is refused, the value kept); the command line says which."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from eha_ros.recording.recorder import Recorder
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        with pytest.raises(ValueError, match='no split with it'):
+            Recorder(context=context, parameter_overrides=[
+                Parameter('snapshot_s', value=1.0), Parameter('max_bag_size_b', value=100)])
+        node = Recorder(context=context, parameter_overrides=[
+            Parameter('snapshot_s', value=1.0), Parameter('output', value=str(tmp_path / 'a'))])
+        try:
+            result, = node.set_parameters([Parameter('queue_depth', value=5)])
+            assert not result.successful
+            assert result.reason == 'queue_depth cannot change while running'
+            assert node.get_parameter('queue_depth').value == 1000
+        finally:
+            node.close()
+            node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+    bad = subprocess.run([str(BIN / 'recorder'), '-o', str(tmp_path / 'x.mcap'), '--ros-args',
+                          '-p', 'compression:=gzip'], env=ros_env, cwd=tmp_path, text=True,
+                         capture_output=True, timeout=PROCESS_TIMEOUT_S)
+    assert bad.returncode == 2 and 'compression must be one of' in bad.stderr
+    _one_line_error(bad.stderr, 'recorder')
+    assert not list(tmp_path.iterdir())
 
 
 def test_recorder_counts_messages_lost_while_stalled(ros_env, tmp_path):
@@ -571,7 +643,7 @@ def test_recorder_counts_messages_lost_while_stalled(ros_env, tmp_path):
     lost = info.lost_messages()[graph.TOPIC_STATE]
     recorded = info.message_counts[graph.TOPIC_STATE]
     missed = info.run_info()['missed_at_start'][graph.TOPIC_STATE]
-    ticks = mcap_io.load_topic_arrays(output, graph.TOPIC_STATE)['tick']
+    ticks = load_topic_arrays(output, graph.TOPIC_STATE)['tick']
     assert lost > 0
     assert recorded + lost + missed == published
     assert np.all(np.diff(ticks) >= 1)
@@ -613,7 +685,7 @@ def test_echo_prints_live_messages(ros_env, tmp_path):
     assert yaml_run.returncode == 0, yaml_run.stderr
     docs = [d for d in yaml.safe_load_all(yaml_run.stdout) if d is not None]
     assert len(docs) == 3
-    want = mcap_io.message_to_dict(expected)
+    want = message_to_plain_data(expected)
     for doc in docs:
         assert doc == want
 
@@ -805,7 +877,7 @@ def test_sigkilled_recorder_is_recovered_with_its_losses(ros_env, tmp_path):
     def recorded():
         try:
             return scan(output).message_counts.get(graph.TOPIC_STATE, 0)
-        except (OSError, mcap_io.RecordingError):  # not created, or not even its header yet
+        except (OSError, RecordingError):  # not created, or not even its header yet
             return 0
 
     try:
@@ -833,7 +905,7 @@ def test_sigkilled_recorder_is_recovered_with_its_losses(ros_env, tmp_path):
             finally:
                 os.kill(recorder.pid, signal.SIGCONT)
             burst_end = published
-            send_until(lambda: mcap_io.load_topic_arrays(
+            send_until(lambda: load_topic_arrays(
                 output, graph.TOPIC_STATE)['tick'][-1] > burst_end)
             os.kill(recorder.pid, signal.SIGKILL)
     finally:
@@ -918,7 +990,7 @@ def test_recorder_splits_into_numbered_complete_files(ros_env, tmp_path, split):
     for path in files:
         info = scan(path, strict=True)
         assert info.complete and info.lost_messages() == {graph.TOPIC_STATE: 0}
-        ticks += list(mcap_io.load_topic_arrays(path, graph.TOPIC_STATE)['tick'])
+        ticks += list(load_topic_arrays(path, graph.TOPIC_STATE)['tick'])
     assert ticks == list(range(n))
 
 
@@ -974,7 +1046,7 @@ def test_snapshot_mode_writes_the_last_seconds_on_request_and_on_health_error(ro
     for path in (tmp_path / 'box_0.mcap', tmp_path / 'box_1.mcap'):
         info = scan(path, strict=True)
         assert info.complete and set(info.channels) == set(graph.TOPICS)
-        state = mcap_io.load_topic_arrays(path, graph.TOPIC_STATE)
+        state = load_topic_arrays(path, graph.TOPIC_STATE)
         assert state['tick'].size > 0
         span_ns = int(state['log_time_ns'][-1] - state['log_time_ns'][0])
         assert span_ns <= 0.5e9                               # only the last 0.5 s

@@ -19,7 +19,8 @@ import pytest
 import yaml
 
 from eha_ros import graph
-from eha_ros.harness import COLLECTOR, GraphConfig, GraphConfigError, GraphError, run_graph
+from eha_ros.harness import (COLLECTOR, GraphConfig, GraphConfigError, GraphError, GraphRun,
+                             run_graph)
 from eha_ros.nodes.handshake import evaluate
 from eha_ros.physics import default_params, simulate
 
@@ -136,6 +137,44 @@ def test_a_stalled_handshake_fails_in_one_line_naming_what_never_matched(ros_env
     assert text.startswith('servovalve_plant: error: start-up handshake incomplete after 3 s')
     assert 'ghost_recorder has not reported' in text and '\n' not in text
     assert time.monotonic() - start < TIMEOUT_S
+
+
+# --- GraphRun: the harness as a context manager ------------------------------------------------
+
+def test_graph_run_in_steps_gives_run_graphs_result_and_ends_its_context(ros_env):
+    """``with GraphRun(...) as run: run.wait()`` is run_graph in steps: the same lockstep data;
+    the ROS context runs until the block is left, the environment is restored after it."""
+    cfg = dict(scenario='sine_0p01_10pi', duration_s=0.03)
+    before = dict(os.environ)
+    with GraphRun(GraphConfig(**cfg), processes=False, env=ros_env,
+                  log_dir=ros_env['ROS_LOG_DIR']) as run:
+        assert os.environ['ROS_DOMAIN_ID'] == ros_env['ROS_DOMAIN_ID']
+        stepped = run.wait()
+        assert run.context.ok() and run.pids == {}
+    assert not run.context.ok() and dict(os.environ) == before
+    assert stepped.complete and not stepped.interrupted
+    assert_array_equal(stepped.state['tick'] // 1000, np.arange(31))
+    whole = _graph(ros_env, processes=False, **cfg)
+    for part in ('state', 'command', 'servovalve'):
+        mine, theirs = getattr(stepped, part), getattr(whole, part)
+        for name in ('stamp_ns', 'jack_position_m', 'position_setpoint_m', 'current_command_a'):
+            if name in theirs:
+                assert_array_equal(mine[name], theirs[name], err_msg=f'{part}.{name}')
+
+
+def test_leaving_a_graph_run_by_an_exception_stops_every_node(ros_env, tmp_path):
+    """An exception inside the ``with`` block (here before the run even waited) propagates,
+    and every node process has ended by the time it does; nothing is left running."""
+    before = dict(os.environ)
+    with pytest.raises(KeyError, match='leave early'):
+        with GraphRun(GraphConfig(duration_s=0.05, record=str(tmp_path / 'run.mcap')),
+                      env=ros_env, log_dir=ros_env['ROS_LOG_DIR']) as run:
+            assert set(run.pids) == {'command_generator', 'controller', 'servovalve_plant',
+                                     'recorder'}
+            assert all(proc.poll() is None for proc, _ in run.procs.values())
+            raise KeyError('leave early')
+    assert all(proc.returncode is not None for proc, _ in run.procs.values())
+    assert not run.context.ok() and dict(os.environ) == before
 
 
 # --- faults on the simulation clock -----------------------------------------------------------

@@ -209,8 +209,8 @@ def test_graph_runs_the_preflight_check_live_equals_offline(eha_graph, tmp_path)
     import sys
     from pathlib import Path
 
-    from eha_ros.recording.mcap_io import McapReader
     from eha_ros.health.monitor import ITEMS
+    from eha_ros.recording.reader import McapReader
     wear = {'demagnetisation': 0.3, 'offset_a': 5e-4}
     path = tmp_path / 'preflight.mcap'
     r = eha_graph(processes=False, scenario='preflight_check', plant=wear, health=True,

@@ -12,7 +12,9 @@ from eha_ros.recording.definitions import (describe_source as _describe, Missing
                                            RecordingError, TruncatedError)
 from eha_ros.recording.reader import McapReader
 
-__all__ = ['message_to_dict', 'flatten', 'load_topic_arrays', 'load_for_tool', 'truncation_warning']
+__all__ = ['message_to_plain_data', 'flatten', 'load_topic_arrays', 'load_for_tool',
+           'truncation_warning']
+
 
 def _is_rclpy_message(msg) -> bool:
     return hasattr(type(msg), 'get_fields_and_field_types')
@@ -29,7 +31,7 @@ def _is_message(value) -> bool:
                                         not isinstance(value, (str, bytes)))
 
 
-def message_to_dict(msg) -> Any:
+def message_to_plain_data(msg) -> Any:
     """A message (rclpy or decoded from a recording) as nested dicts and lists of plain values.
 
     Floats stay floats, integers ints (also ``byte`` fields, which rclpy gives as ``bytes``);
@@ -41,16 +43,16 @@ def message_to_dict(msg) -> Any:
             value = getattr(msg, name)
             if field_type == 'octet' and isinstance(value, bytes):  # rclpy: b'\x01' for a byte
                 value = value[0]
-            out[name] = message_to_dict(value)
+            out[name] = message_to_plain_data(value)
         return out
     if _is_message(msg):
-        return {name: message_to_dict(getattr(msg, name)) for name in _field_names(msg)}
+        return {name: message_to_plain_data(getattr(msg, name)) for name in _field_names(msg)}
     if isinstance(msg, (bytes, bytearray)):
         return list(msg)
     if isinstance(msg, np.ndarray):
-        return [message_to_dict(v) for v in msg.tolist()]
+        return [message_to_plain_data(v) for v in msg.tolist()]
     if isinstance(msg, (list, tuple)) or type(msg).__name__ == 'array':
-        return [v[0] if isinstance(v, bytes) and len(v) == 1 else message_to_dict(v)
+        return [v[0] if isinstance(v, bytes) and len(v) == 1 else message_to_plain_data(v)
                 for v in msg]
     if isinstance(msg, np.generic):
         return msg.item()
@@ -60,7 +62,7 @@ def message_to_dict(msg) -> Any:
 def flatten(msg, prefix: str = '') -> Dict[str, Any]:
     """Scalar fields of a message as ``{'a.b.c': value}`` (sequences as lists, in one key)."""
     out: Dict[str, Any] = {}
-    data = message_to_dict(msg) if not isinstance(msg, dict) else msg
+    data = message_to_plain_data(msg) if not isinstance(msg, dict) else msg
 
     def walk(value, key):
         if isinstance(value, dict):

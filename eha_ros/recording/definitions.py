@@ -283,7 +283,6 @@ def count_sequence_gaps(sequences: Iterable[Optional[int]],
     return counter.lost
 
 
-
 def describe_source(source) -> str:
     """How error messages name a recording: its path, or ``input`` for bytes and streams."""
     return str(source) if isinstance(source, (str, os.PathLike)) else 'input'

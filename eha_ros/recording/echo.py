@@ -26,7 +26,7 @@ from typing import List, Optional
 import yaml
 
 from eha_ros.graph import message_class
-from eha_ros.recording.arrays import flatten, message_to_dict
+from eha_ros.recording.arrays import flatten, message_to_plain_data
 from eha_ros.recording.stop import StopRequest
 
 __all__ = ['main', 'format_yaml', 'csv_row']
@@ -36,7 +36,7 @@ PROG = 'eha-echo'
 
 def format_yaml(msg) -> str:
     """One message as a YAML document (field order kept), ending in ``---``."""
-    text = yaml.safe_dump(message_to_dict(msg), sort_keys=False, allow_unicode=True,
+    text = yaml.safe_dump(message_to_plain_data(msg), sort_keys=False, allow_unicode=True,
                           default_flow_style=False, width=1 << 16)
     return text + '---'
 

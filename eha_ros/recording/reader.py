@@ -1,5 +1,5 @@
 """Read recordings sequentially, without their summary section, so that a truncated file
-yields every message up to its last complete chunk (see :mod:`eha_ros.recording.mcap_io`).
+yields every message up to its last complete chunk (see :mod:`eha_ros.recording.writer`).
 
 Messages are decoded from the schemas in the file (``mcap_ros2``): no ``rclpy`` needed.
 """
@@ -25,6 +25,7 @@ from eha_ros.recording.definitions import (CorruptError, describe_source as _des
 
 __all__ = ['RecordedMessage', 'ChannelInfo', 'RecordingInfo', 'McapReader', 'scan',
            'iter_decoded']
+
 
 class RecordedMessage(NamedTuple):
     """One message of a recording."""
@@ -324,5 +325,3 @@ def iter_decoded(source, topics: Optional[Iterable[str]] = None,
                  strict: bool = False) -> Iterator[RecordedMessage]:
     """Decoded messages of a recording in file order (see :class:`McapReader`)."""
     return iter(McapReader(source, topics=topics, strict=strict))
-
-

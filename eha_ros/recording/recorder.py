@@ -19,7 +19,7 @@ service (``std_srvs/srv/Trigger``) is called, and by itself when ``/eha/health``
 ``LEVEL_ERROR``, so the moments before a fault are kept.
 
 Every topic is subscribed to as serialized CDR (no deserialization) and written as-is, in
-rosbag2's MCAP layout (see :mod:`eha_ros.recording.mcap_io`); each topic's channel is created
+rosbag2's MCAP layout (see :mod:`eha_ros.recording.writer`); each topic's channel is created
 when its first message arrives, with the QoS its publishers offer. Lost messages are counted
 per topic from the publishers' sequence numbers (``publication_sequence_number`` of the message
 info: DDS numbers the samples of each publisher 1, 2, 3, ...; a jump is a loss) and stored in
@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import argparse
 from collections import deque
+import dataclasses
 import datetime
 import os
 from pathlib import Path
@@ -70,7 +71,6 @@ import time
 from typing import Dict, List, Optional, Sequence
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -79,6 +79,10 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from eha_ros import graph
+from eha_ros.nodes.common import (apply_realtime_settings, declare, declare_realtime,
+                                  refuse_undeclared, validator)
+from eha_ros.nodes.handshake import Handshake
+from eha_ros.physics import ParameterError
 from eha_ros.recording.definitions import qos_profile_dict, SequenceGapCounter
 from eha_ros.recording.stop import StopRequest
 from eha_ros.recording.writer import McapWriter
@@ -92,30 +96,51 @@ _DRAIN_QUIET_S = 0.1
 _DRAIN_MAX_S = 2.0
 
 
-#: The recorder's parameters: ``name -> (default, description)`` (the module docstring's table).
-RECORDER_PARAMETERS = {
-    'output': ('', "MCAP file to create (never overwritten); '': eha_<date>-<time>.mcap"),
-    'topics': (list(graph.TOPICS), 'topics to record, each a graph topic (moved to namespace)'),
-    'namespace': (graph.NAMESPACE, "namespace of the actuator's topics"),
-    'queue_depth': (1000, 'subscription history depth [samples]'),
-    'chunk_size': (1 << 20, 'uncompressed bytes per MCAP chunk [B]'),
-    'compression': ('auto', 'chunk compression: auto, zstd, lz4 or none'),
-    'flush_interval_s': (1.0, 'longest time a received message stays in memory [s]'),
-    'duration_s': (0.0, 'stop after this long [s] (0: until SIGINT/SIGTERM)'),
-    'batch_period_s': (0.005, 'pause after taking messages so the next take finds a batch [s]'),
-    'regex': ('', 'record only the topics matching this regular expression (empty: all)'),
-    'exclude_regex': ('', 'leave out the topics matching this regular expression'),
-    'max_bag_size_b': (0, 'split: start the next file once one holds this many bytes [B] '
-                          '(0: no split by size)'),
-    'max_bag_duration_s': (0.0, 'split: start the next file once one spans this long [s] '
-                                '(0: no split by duration)'),
-    'snapshot_s': (0.0, 'snapshot mode: keep the last snapshot_s [s] in memory and write them '
-                        'on ~/snapshot or when /eha/health turns ERROR (0: record all)'),
-    'thread_priority': (0, 'SCHED_FIFO priority of every thread of the process (1-99; 0: '
-                           'normal scheduling), so other work cannot starve the recording'),
-    'cpu_affinity': ([-1], 'CPUs to pin every thread of the process to ([-1]: no pinning)'),
-    'lock_memory': (False, 'lock the process memory in RAM (mlockall)'),
-}
+#: Chunk compressions of ``compression``.
+COMPRESSIONS = ('auto', 'zstd', 'lz4', 'none')
+
+
+def declare_parameters(node: Node):
+    """Declare the recorder's parameters (the module docstring's table) on ``node``; returns
+    ``({name: value}, RealtimeSettings)``."""
+    values = {name: declare(node, name, *spec) for name, *spec in (
+        ('output', '', "MCAP file to create (never overwritten); '': eha_<date>-<time>.mcap"),
+        ('topics', list(graph.TOPICS), 'topics to record, each a graph topic (moved to '
+                                       'namespace)'),
+        ('namespace', graph.NAMESPACE, "namespace of the actuator's topics"),
+        ('queue_depth', 1000, 'subscription history depth [samples]'),
+        ('chunk_size', 1 << 20, 'uncompressed bytes per MCAP chunk [B]'),
+        ('compression', 'auto', 'chunk compression: auto, zstd, lz4 or none', None, None,
+         COMPRESSIONS),
+        ('flush_interval_s', 1.0, 'longest time a received message stays in memory [s]'),
+        ('duration_s', 0.0, 'stop after this long [s] (0: until SIGINT/SIGTERM)'),
+        ('batch_period_s', 0.005, 'pause after taking messages so the next take finds a batch '
+                                  '[s]', 0.0, 0.1),
+        ('regex', '', 'record only the topics matching this regular expression (empty: all)'),
+        ('exclude_regex', '', 'leave out the topics matching this regular expression'),
+        ('max_bag_size_b', 0, 'split: start the next file once one holds this many bytes [B] '
+                              '(0: no split by size)'),
+        ('max_bag_duration_s', 0.0, 'split: start the next file once one spans this long [s] '
+                                    '(0: no split by duration)'),
+        ('snapshot_s', 0.0, 'snapshot mode: keep the last snapshot_s [s] in memory and write '
+                            'them on ~/snapshot or when /eha/health turns ERROR (0: record '
+                            'all)'))}
+    return values, declare_realtime(node)
+
+
+def check_parameters(values: dict) -> None:
+    """Refuse what the recorder cannot work with (ParameterError: one line)."""
+    for name, lowest in (('queue_depth', 1), ('chunk_size', 1), ('max_bag_size_b', 0),
+                         ('max_bag_duration_s', 0.0), ('snapshot_s', 0.0)):
+        if values[name] < lowest:
+            raise ParameterError(f'{name} must be >= {lowest:g}, got {values[name]}')
+    if values['flush_interval_s'] <= 0:
+        raise ParameterError(f'flush_interval_s must be > 0, got {values["flush_interval_s"]}')
+    if values['compression'] not in COMPRESSIONS:
+        raise ParameterError(f'compression must be one of {", ".join(COMPRESSIONS)}, got '
+                             f'{values["compression"]!r}')
+    if values['snapshot_s'] and (values['max_bag_size_b'] or values['max_bag_duration_s']):
+        raise ParameterError('snapshot mode writes one file per snapshot: no split with it')
 
 
 class RecorderError(ValueError):
@@ -148,8 +173,8 @@ def resolve_topics(requested: Sequence[str], namespace: str = graph.NAMESPACE) -
     return out
 
 
-def select_topics(topics: Dict[str, str], regex: str = '',
-                  exclude_regex: str = '') -> Dict[str, str]:
+def topics_matching(topics: Dict[str, str], regex: str = '',
+                    exclude_regex: str = '') -> Dict[str, str]:
     """The topics matching ``regex`` (``re.search``; empty: all) and not ``exclude_regex``.
 
     Raises
@@ -187,73 +212,51 @@ def check_output(path: str, numbered: bool = False) -> Path:
     return out
 
 
+@dataclasses.dataclass(slots=True)
 class _TopicState:
-    __slots__ = ('topic', 'type_name', 'cls', 'subscription', 'counter', 'registered',
-                 'sequence_numbers')
-
-    def __init__(self, topic: str, type_name: str, cls: type):
-        self.topic = topic
-        self.type_name = type_name
-        self.cls = cls
-        self.subscription = None
-        self.counter = SequenceGapCounter()
-        self.registered = False
-        self.sequence_numbers = True
+    topic: str
+    type_name: str
+    cls: type
+    subscription: object = None
+    counter: SequenceGapCounter = dataclasses.field(default_factory=SequenceGapCounter)
+    registered: bool = False
+    sequence_numbers: bool = True
 
 
 class Recorder(Node):
     """Subscribes to the graph's topics as raw CDR and writes them to an MCAP file."""
 
     def __init__(self, *, parameter_overrides: Optional[list] = None, **kwargs):
-        super().__init__(NODE_NAME, parameter_overrides=parameter_overrides or [],
-                         **kwargs)
-        value = {name: self.declare_parameter(
-            name, default, ParameterDescriptor(description=text)).value
-            for name, (default, text) in RECORDER_PARAMETERS.items()}
-        from eha_ros.nodes.common import refuse_undeclared
+        super().__init__(NODE_NAME, parameter_overrides=parameter_overrides or [], **kwargs)
+        values, realtime = declare_parameters(self)
         refuse_undeclared(self)  # before any file is created
-        self.output = value['output'] or default_output()
-        namespace = value['namespace']
-        requested = value['topics']
-        if list(requested) == list(graph.TOPICS):  # the default: every topic, in namespace
-            requested = list(graph.topics_in(namespace))
-        queue_depth = int(value['queue_depth'])
-        chunk_size = int(value['chunk_size'])
-        compression = value['compression']
-        flush_interval_s = float(value['flush_interval_s'])
-        self.duration_s = float(value['duration_s'])
-        self.batch_period_s = float(value['batch_period_s'])
-        if not 0.0 <= self.batch_period_s <= 0.1:
-            raise RecorderError(f'batch_period_s must be in [0, 0.1], got '
-                                f'{self.batch_period_s}')
-        if queue_depth < 1:
-            raise RecorderError(f'queue_depth must be >= 1, got {queue_depth}')
-        if chunk_size < 1:
-            raise RecorderError(f'chunk_size must be >= 1, got {chunk_size}')
-        if flush_interval_s <= 0:
-            raise RecorderError(f'flush_interval_s must be > 0, got {flush_interval_s}')
-        if compression not in ('auto', 'zstd', 'lz4', 'none'):
-            raise RecorderError(f'compression must be auto, zstd, lz4 or none, got '
-                                f'{compression!r}')
-        wanted = select_topics(resolve_topics(list(requested or []), namespace),
-                               value['regex'], value['exclude_regex'])
-        self.max_bag_size_b = int(value['max_bag_size_b'])
-        self.max_bag_duration_ns = round(float(value['max_bag_duration_s']) * 1e9)
-        self.snapshot_ns = round(float(value['snapshot_s']) * 1e9)
-        if self.max_bag_size_b < 0 or self.max_bag_duration_ns < 0 or self.snapshot_ns < 0:
-            raise RecorderError('max_bag_size_b, max_bag_duration_s and snapshot_s must be >= 0')
-        if self.snapshot_ns and (self.max_bag_size_b or self.max_bag_duration_ns):
-            raise RecorderError('snapshot mode writes one file per snapshot: no split with it')
-        states = []
-        for topic, type_name in wanted.items():
-            try:
-                states.append(_TopicState(topic, type_name, graph.message_class(type_name)))
-            except ValueError as exc:
-                raise RecorderError(str(exc)) from None
-        self.numbered = bool(self.max_bag_size_b or self.max_bag_duration_ns or self.snapshot_ns)
+        check_parameters(values)
+        self.add_on_set_parameters_callback(validator(self._on_set))
+        self._configure(values)
+        states = self._topic_states(values)
         path = check_output(self.output, numbered=self.numbered)
-        self._writer_args = dict(chunk_size=chunk_size, compression=compression,
-                                 flush_interval_s=flush_interval_s)
+        self.writer = None if self.snapshot_ns else self._open_writer()
+        self._subscribe(states, values['namespace'], values['queue_depth'])
+        apply_realtime_settings(self, realtime)
+        what = (f'the last {self.snapshot_ns / 1e9:g} s of' if self.snapshot_ns else 'recording')
+        self.get_logger().info(f'{what} {len(states)} topics to {path}: '
+                               f'{", ".join(s.topic for s in states)}')
+
+    def _on_set(self, changes: dict) -> None:
+        """Every parameter is fixed for the recording."""
+        if changes:
+            raise ParameterError(f'{sorted(changes)[0]} cannot change while running')
+
+    def _configure(self, values: dict) -> None:
+        self.output = values['output'] or default_output()
+        self.duration_s = values['duration_s']
+        self.batch_period_s = values['batch_period_s']
+        self.max_bag_size_b = values['max_bag_size_b']
+        self.max_bag_duration_ns = round(values['max_bag_duration_s'] * 1e9)
+        self.snapshot_ns = round(values['snapshot_s'] * 1e9)
+        self.numbered = bool(self.max_bag_size_b or self.max_bag_duration_ns or self.snapshot_ns)
+        self._writer_args = {k: values[k] for k in ('chunk_size', 'compression',
+                                                    'flush_interval_s')}
         self.files: List[str] = []
         self.started_ns = time.time_ns()
         self.last_message_monotonic = time.monotonic()
@@ -261,11 +264,26 @@ class Recorder(Node):
         self._states: Dict[str, _TopicState] = {}
         self._ring: deque = deque()  # snapshot mode: (state, data, log, publish, seq, publisher)
         self._health_level = graph.LEVEL_OK
-        self.writer = None if self.snapshot_ns else self._open_writer()
+
+    @staticmethod
+    def _topic_states(values: dict) -> List[_TopicState]:
+        """The topics to record: ``topics`` (default: all, in ``namespace``) that match."""
+        requested, namespace = list(values['topics']), values['namespace']
+        if requested == list(graph.TOPICS):
+            requested = list(graph.topics_in(namespace))
+        wanted = topics_matching(resolve_topics(requested, namespace), values['regex'],
+                                 values['exclude_regex'])
+        try:
+            return [_TopicState(topic, type_name, graph.message_class(type_name))
+                    for topic, type_name in wanted.items()]
+        except ValueError as exc:
+            raise RecorderError(str(exc)) from None
+
+    def _subscribe(self, states: List[_TopicState], namespace: str, queue_depth: int) -> None:
+        """Subscribe to ``states`` as raw CDR (snapshot mode: also the health; ``~/snapshot``)."""
         qos = graph.graph_qos(depth=queue_depth)
         # The start-up handshake (eha_ros.nodes.handshake): the graph starts only once every
         # subscription here has matched its publishers, so the recording misses no tick.
-        from eha_ros.nodes.handshake import Handshake
         self.handshake = Handshake(self)
         for state in states:
             self._states[state.topic] = state
@@ -281,21 +299,6 @@ class Recorder(Node):
             health = next(t for t, ty in graph.topics_in(namespace).items()
                           if ty == graph.TOPICS[graph.TOPIC_HEALTH])
             self.create_subscription(HealthStatus, health, self._on_health, qos)
-        from eha_ros.realtime import apply_realtime, RealtimeSettings
-        try:
-            realtime = RealtimeSettings(
-                thread_priority=int(value['thread_priority']), lock_memory=bool(
-                    value['lock_memory']),
-                cpu_affinity=tuple(int(c) for c in value['cpu_affinity'] if int(c) >= 0))
-        except ValueError as exc:
-            raise RecorderError(str(exc)) from None
-        if realtime.thread_priority or realtime.cpu_affinity or realtime.lock_memory:
-            for line in apply_realtime(realtime):
-                self.get_logger().warning(line)
-        what = (f'the last {self.snapshot_ns / 1e9:g} s of' if self.snapshot_ns else 'recording')
-        self.get_logger().info(
-            f'{what} {len(states)} topics to {path}: '
-            f'{", ".join(s.topic for s in states)}')
 
     # files ---------------------------------------------------------------------------------
     def _next_path(self) -> Path:
@@ -344,7 +347,6 @@ class Recorder(Node):
         return on_message
 
     def _register(self, state: _TopicState, writer: Optional[McapWriter] = None) -> None:
-        profiles = []
         try:
             profiles = [qos_profile_dict(p.qos_profile)
                         for p in self.get_publishers_info_by_topic(state.topic)]
@@ -457,37 +459,35 @@ class Recorder(Node):
             return
         stopped_ns = time.time_ns()
         self._close_writer()
-        log = self.get_logger()
-        counts = self.writer.message_counts
-        lost = self.writer.lost_counts
+        log, counts, lost = self.get_logger(), self.writer.message_counts, self.writer.lost_counts
         where = self.files[-1] if len(self.files) == 1 else f'{len(self.files)} files'
-        log.info(f'wrote {where}: {sum(counts.values())} messages, '
-                 f'{sum(lost.values())} lost, '
+        log.info(f'wrote {where}: {sum(counts.values())} messages, {sum(lost.values())} lost, '
                  f'{(stopped_ns - self.started_ns) / 1e9:.1f} s')
-        for topic in self._states:
-            state = self._states[topic]
+        for topic, state in self._states.items():
             note = '' if state.sequence_numbers else ' (loss detection unavailable)'
             log.info(f'  {topic}: {counts.get(topic, 0)} recorded, '
                      f'{lost.get(topic, 0)} lost{note}')
 
 
 def _parser() -> argparse.ArgumentParser:
+    """The options, each stored under the name of the parameter it sets."""
     parser = argparse.ArgumentParser(
         prog='recorder', description='Record the actuator graph into an MCAP file.')
     parser.add_argument('-o', '--output', help='MCAP file to create (never overwritten)')
     parser.add_argument('--topics', nargs='+', metavar='TOPIC',
                         help='topics to record (default: every graph topic)')
-    parser.add_argument('--duration', type=float, metavar='S',
+    parser.add_argument('--duration', type=float, metavar='S', dest='duration_s',
                         help='stop after S seconds (default: until SIGINT/SIGTERM)')
     parser.add_argument('-e', '--regex', metavar='RE',
                         help='record only the topics matching RE')
     parser.add_argument('-x', '--exclude-regex', metavar='RE',
                         help='leave out the topics matching RE')
-    parser.add_argument('-b', '--max-bag-size', type=int, metavar='BYTES',
+    parser.add_argument('-b', '--max-bag-size', type=int, metavar='BYTES', dest='max_bag_size_b',
                         help='split: next file <stem>_<n>.mcap once one holds BYTES')
     parser.add_argument('-d', '--max-bag-duration', type=float, metavar='S',
+                        dest='max_bag_duration_s',
                         help='split: next file <stem>_<n>.mcap once one spans S seconds')
-    parser.add_argument('--snapshot', type=float, metavar='S',
+    parser.add_argument('--snapshot', type=float, metavar='S', dest='snapshot_s',
                         help='snapshot mode: keep the last S seconds, write them on the '
                              '~/snapshot service (std_srvs/Trigger) or when /eha/health '
                              'turns ERROR')
@@ -498,20 +498,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     """Console script ``recorder``; returns the exit status."""
     argv = list(sys.argv if argv is None else argv)
     args = _parser().parse_args(remove_ros_args(argv)[1:])
-    overrides = []
-    if args.output is not None:
-        overrides.append(Parameter('output', value=args.output))
-    if args.topics is not None:
-        overrides.append(Parameter('topics', value=list(args.topics)))
-    if args.duration is not None:
-        overrides.append(Parameter('duration_s', value=float(args.duration)))
-    for option, name, convert in (('regex', 'regex', str),
-                                  ('exclude_regex', 'exclude_regex', str),
-                                  ('max_bag_size', 'max_bag_size_b', int),
-                                  ('max_bag_duration', 'max_bag_duration_s', float),
-                                  ('snapshot', 'snapshot_s', float)):
-        if getattr(args, option) is not None:
-            overrides.append(Parameter(name, value=convert(getattr(args, option))))
+    overrides = [Parameter(name, value=value) for name, value in vars(args).items()
+                 if value is not None]
 
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     stop = StopRequest()

@@ -35,7 +35,7 @@ from eha_ros.recording.definitions import RecordingError, TruncatedError
 from eha_ros.recording.reader import McapReader, RecordingInfo, scan
 from eha_ros.recording.stop import StopRequest
 
-__all__ = ['main', 'select_topics', 'ReplayError']
+__all__ = ['main', 'topics_to_replay', 'ReplayError']
 
 PROG = 'eha-replay'
 
@@ -44,8 +44,8 @@ class ReplayError(ValueError):
     """Bad input: the message is the one line printed."""
 
 
-def select_topics(info: RecordingInfo, requested: Optional[List[str]],
-                  namespace: str = graph.NAMESPACE) -> Dict[str, str]:
+def topics_to_replay(info: RecordingInfo, requested: Optional[List[str]],
+                     namespace: str = graph.NAMESPACE) -> Dict[str, str]:
     """Topics to replay (``topic -> type``): ``requested`` checked against the graph and the
     file, or every graph topic that has messages in the file.
 
@@ -135,7 +135,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             print(truncation_warning(PROG, args.file, str(exc),
                                      sum(info.message_counts.values()), 'messages'),
                   file=sys.stderr)
-        selected = select_topics(info, args.topics, args.namespace)
+        selected = topics_to_replay(info, args.topics, args.namespace)
     except (RecordingError, ReplayError) as exc:
         print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
         return 2

@@ -1,4 +1,20 @@
-"""Write a recording in rosbag2's MCAP layout (see :mod:`eha_ros.recording.mcap_io`).
+"""Write a recording (:class:`McapWriter`) in the MCAP layout rosbag2's MCAP storage uses:
+
+* profile ``ros2``; one schema per message type, named ``pkg/msg/Type``, encoding ``ros2msg``:
+  the type's ``.msg`` text followed, for every (nested) dependency once, by a line of 80 ``=``,
+  ``MSG: pkg/Type`` and that type's ``.msg`` text
+  (:func:`~eha_ros.recording.definitions.message_definition`; the ``.msg`` files come from
+  ``<prefix>/share/<pkg>/msg/``);
+* one channel per topic, message encoding ``cdr``, with the channel metadata rosbag2 writes:
+  ``offered_qos_profiles`` (YAML list of the publishers' QoS) and ``topic_type_hash``
+  (``RIHS01_...`` from the installed type description ``.json``);
+* messages with log and publish times in integer nanoseconds and the publisher's sequence
+  number (modulo 2**32);
+* zstd (or lz4) compressed chunks, each written out and flushed when it is closed, so that a
+  writer killed mid-way leaves a file readable up to its last complete chunk;
+* at close, a metadata record ``rosbag2`` (key ``serialized_metadata``: the bag's metadata as
+  YAML, version 9) and a metadata record ``eha_ros`` (lost messages per topic, run info), then
+  the summary section and footer.
 
 No ROS imports except in :meth:`McapWriter.write_message`, which serializes an rclpy message.
 """
@@ -22,6 +38,7 @@ from eha_ros.recording.definitions import (_MESSAGE_RECORD_OVERHEAD, MESSAGE_ENC
                                            RUN_METADATA_NAME, SCHEMA_ENCODING, type_hash)
 
 __all__ = ['McapWriter']
+
 
 def _compression(name: str) -> CompressionType:
     name = (name or 'none').lower()
@@ -261,7 +278,7 @@ class McapWriter:
             self.flush()
             self._writer.add_metadata(ROSBAG2_METADATA_NAME, {
                 'serialized_metadata': yaml.safe_dump(self.rosbag2_metadata(), sort_keys=False,
-                                                       default_flow_style=False)})
+                                                      default_flow_style=False)})
             lost = {t: int(self.lost_counts.get(t, 0)) for t in self._topic_meta}
             lost.update({t: int(n) for t, n in self.lost_counts.items()})
             self._writer.add_metadata(RUN_METADATA_NAME, {
@@ -274,5 +291,3 @@ class McapWriter:
         finally:
             if self._owns_stream:
                 self._stream.close()
-
-

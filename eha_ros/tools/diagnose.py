@@ -46,7 +46,8 @@ _STATE_FIELDS = ('status', 'sim_time_s', 'spool_position_m', 'load_flow_m3_s', '
 
 def _recorded_health(path) -> list:
     """The recorded HealthStatus messages as flat dicts (sequence fields kept)."""
-    from eha_ros.recording.mcap_io import McapReader, flatten
+    from eha_ros.recording.arrays import flatten
+    from eha_ros.recording.reader import McapReader
     try:
         return [flatten(m.message) for m in McapReader(path, topics=[TOPIC_HEALTH])]
     except (OSError, RecordingError):

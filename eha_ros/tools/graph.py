@@ -165,9 +165,15 @@ def node_defaults(descriptions: bool = False) -> dict:
     from eha_ros.nodes.controller import Controller
     from eha_ros.nodes.health_monitor import HealthMonitor
     from eha_ros.nodes.servovalve_plant import ServovalvePlant
-    from eha_ros.recording.recorder import RECORDER_PARAMETERS
+    from eha_ros.recording.recorder import declare_parameters
+
+    def recorder(**kwargs):  # its declarations alone: a Recorder would create its file
+        node = rclpy.create_node('recorder', **kwargs)
+        declare_parameters(node)
+        return node
     classes = {'command_generator': CommandGenerator, 'controller': Controller,
-               'servovalve_plant': ServovalvePlant, 'health_monitor': HealthMonitor}
+               'servovalve_plant': ServovalvePlant, 'health_monitor': HealthMonitor,
+               'recorder': recorder}
     out = {}
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=0)
@@ -190,9 +196,6 @@ def node_defaults(descriptions: bool = False) -> dict:
                 node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
-    recorder = dict(RECORDER_PARAMETERS, use_sim_time=(False, ''))
-    out['recorder'] = {k: ((v, d) if descriptions else v)
-                       for k, (v, d) in sorted(recorder.items())}
     return out
 
 
