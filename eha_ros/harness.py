@@ -53,8 +53,12 @@ COLLECTOR = 'eha_harness_collector'
 #: signals them (s): a second SIGINT could hit a recorder after it restored its handlers.
 _GRACE_S = 3.0
 
-#: How long the harness waits, past the plant's own handshake timeout, for the start (s).
+#: How long the harness waits, past the plant's own handshake timeout counted from the plant's
+#: first report, for the start (s): the plant's own watchdog fires first and names the cause.
 _START_MARGIN_S = 15.0
+#: How long a node process may take to come up and report at all (s): imports and kernel
+#: compilation on a loaded machine take tens of seconds; one silent for this long is stuck.
+_REPORT_DEADLINE_S = 180.0
 
 #: Real-time settings ``GraphConfig.rt`` gives each ticking node.
 TICKING_NODES = ('command_generator', 'controller', 'servovalve_plant')
@@ -598,7 +602,8 @@ class GraphRun:
         if self.on_start is not None:
             self.on_start(self.pids)
         self._last_progress, self._last_count = time.monotonic(), 0
-        self._start_deadline = self.t0 + self.config.handshake_timeout_s + _START_MARGIN_S
+        self._start_deadline = self.t0 + _REPORT_DEADLINE_S
+        self._coordinator_seen = False
 
     def _due(self, delay: float) -> bool:
         """Whether a node delayed by ``delay`` s falls due (after the start with an observer)."""
@@ -687,6 +692,13 @@ class GraphRun:
         now = time.monotonic()
         if self.collector is None or not self.collector.handshake.started:
             self._last_progress = now
+            from eha_ros.nodes.handshake import COORDINATOR
+            if (not self._coordinator_seen and self.collector is not None
+                    and COORDINATOR in self.collector.handshake.reports):
+                # the plant is up and counting its own timeout: wait for its verdict, not
+                # for the time its process took to come up
+                self._coordinator_seen = True
+                self._start_deadline = now + self.config.handshake_timeout_s + _START_MARGIN_S
             if now > self._start_deadline:
                 problem = (evaluate_reports(self.collector, self.config)
                            if self.collector is not None else 'the collector was never created')
