@@ -43,7 +43,8 @@ from eha_ros.graph import TOPIC_STATE
 from eha_ros.recording.arrays import load_for_tool
 from eha_ros.recording.definitions import RecordingError
 
-__all__ = ['SIGNALS', 'Run', 'load_run', 'relative_error', 'compare_runs', 'plot_runs', 'main']
+__all__ = ['SIGNALS', 'Run', 'load_run', 'resampled_relative_error', 'compare_runs', 'plot_runs',
+           'main']
 
 PROG = 'eha-compare'
 
@@ -102,8 +103,8 @@ def load_run(path: str, topic: str = TOPIC_STATE) -> Run:
                signals={f: np.asarray(arrays[f][idx], dtype=float) for f, *_ in SIGNALS})
 
 
-def relative_error(t_ref: np.ndarray, x_ref: np.ndarray, t: np.ndarray,
-                   x: np.ndarray) -> Dict[str, float]:
+def resampled_relative_error(t_ref: np.ndarray, x_ref: np.ndarray, t: np.ndarray,
+                             x: np.ndarray) -> Dict[str, float]:
     """``||x(t_ref) - x_ref||_2 / ||x_ref||_2`` over the reference times inside ``t``'s span.
 
     ``x`` is linearly interpolated onto ``t_ref`` (exact where the times coincide). Returns
@@ -151,7 +152,8 @@ def compare_runs(runs: Sequence[Run], reference: int = 0, align: str = 'stamp') 
             continue
         errors, samples = {}, 0
         for field, *_ in SIGNALS:
-            e = relative_error(ref.time_s, ref.signals[field], run.time_s, run.signals[field])
+            e = resampled_relative_error(ref.time_s, ref.signals[field], run.time_s,
+                                         run.signals[field])
             errors[field] = e['relative_error'] if np.isfinite(e['relative_error']) else None
             samples = e['samples']
         if samples == 0:
