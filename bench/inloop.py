@@ -4,9 +4,10 @@ JSON object (:mod:`eha_ros.evaluation` defines every figure).
 Cases: the reference's nine scenarios, ``step_1mm`` and ``step_0p3mm`` (large signals) and
 ``chirp_0p1``, at every wear point of ``WEAR_POINTS`` (nominal, two off the wear grids of
 every table and six drawn at random over the dynamic surrogates' range,
-:mod:`eha_ros.evaluation`).  Noise-free: errors, yardstick, bounds and features per case, every model, and hf and the dynamic
-surrogates again at each of ``--large-dts`` (2, 5 and 10 us) against hf at 1 us, which gives
-``largest_steps``: per model the largest step meeting the bounds in every case.  With noise
+:mod:`eha_ros.evaluation`).  Noise-free: errors, yardstick, bounds and features per case,
+every model, and hf and the dynamic surrogates again at each of ``--large-dts`` (2, 5 and
+10 us) against hf at 1 us, which gives ``largest_steps``: per model the largest step meeting
+the bounds in every case.  With noise
 (nominal wear): ``--seeds`` seeds (20: the errors are heavy-tailed on small-signal holds, see
 :mod:`eha_ros.evaluation`) for ``--noise-models`` (default all but the reference's
 networks ``nn``, ``nn2``, which miss the noise-free bounds by far and cost 15-20x hf).
