@@ -80,6 +80,33 @@ def test_edge_flows_equal_hf_edge_equations(dyn):
         np.testing.assert_array_equal(dyn.edge_flow(s, -dp, p), -dyn.edge_flow(s, dp, p))
 
 
+#: Tolerances of one edge's flow, relative, at every point of the large-flow corners: dlut
+#: 5e-4 (its bilinear cells in |dp| bend by up to (1/16)^2 / 32 = 1.2e-4 where q ~ sqrt|dp|,
+#: plus the float32 storage of ln G and the cubic interpolation in ln c; measured 1.6e-4), dga
+#: 1e-12 (its form is hf's, the polished coefficients hf's to rounding), dnn 5e-3 (its edge
+#: tolerance, measured up to 2.2e-3 at these corners); clamping the drop anywhere below
+#: DP_MAX_PA, or holding the opening short of the axis' end, errs by several percent.
+CORNER_TOL = {'dlut': 5e-4, 'dga': 1e-12, 'dnn': 5e-3}
+
+
+def test_edge_flows_at_the_large_flow_corners(dyn):
+    """Where each surrogate's range ends: pressure drops at DP_MAX_PA (dlut's table ends,
+    dnn's drop feature is clamped) and at the cavitation boundary (supply against a chamber at
+    the vapour pressure), openings at full stroke and at both ends of the opening range (the
+    end of dlut's axis), clearances at both ends of their range."""
+    from eha_ros.surrogates.dynamic import DP_MAX_PA, valid_range
+    vr = valid_range(P)
+    ops = np.array([vr['opening_m'][0], -P.spool_stroke_m, 0.0, P.spool_stroke_m,
+                    vr['opening_m'][1]])
+    dps = np.array([P.supply_pressure_pa - P.vapour_pressure_pa, DP_MAX_PA])
+    o, d = (a.ravel() for a in np.meshgrid(ops, dps))
+    for clr in WEAR_RANGES['radial_clearance_m']:
+        got = dyn.edge_flow(o, d, replace(P, radial_clearance_m=clr))
+        err = np.abs(got / edge_flows(o, d, clr) - 1.0)
+        assert err.max() < CORNER_TOL[dyn.name], (clr, o[np.argmax(err)], d[np.argmax(err)],
+                                                  err.max())
+
+
 @pytest.mark.parametrize('lap,clr', WEAR[:3])
 def test_valve_symmetry(dyn, lap, clr):
     """With equal laps the valve is antisymmetric: Q1L(XS, P) = -Q1L(-XS, PS + PR - P)."""

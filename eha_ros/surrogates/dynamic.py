@@ -44,8 +44,8 @@ Members (built by :mod:`.dynamic_train`)
     ``dlut``: table of ``ln G`` over (s, |dp|, ln c), collapsed to the run's clearance, then
     bilinear per step (below); ``dnn``: a network ``features -> ln G``, see
     below; ``dga``: a closed form designed from the physics of an annular orifice,
-    coefficients fitted by the genetic algorithm (and, for comparison, by a gradient fit), see
-    :func:`ga_edge_flow`.
+    coefficients fitted by the genetic algorithm, then polished by a gradient fit from its
+    best, see :func:`ga_edge_flow`.
 
 The ``dlut`` table
     Its axes are spaced as float64 numbers are: :func:`log_axis` puts ``2^m`` equal cells in

@@ -59,10 +59,11 @@ DNN_SETTINGS = {
     'n_val': 10000, 'loop_fraction': 0.6, 'seed': 0,
     'dp_scale_pa': 1e3,
     'algorithm': 'lm',
-    'lm': {'epochs': 700, 'subsample': 15000, 'resample_every': 25, 'max_fail': 150},
+    'lm': {'epochs': 731, 'subsample': 15000, 'resample_every': 25, 'max_fail': 150},
 }
-# A fixed epoch count and no time limit: the same artefact whatever the machine's load (an
-# earlier build stopped on a 660 s time limit, after however many epochs the load allowed).
+# A fixed epoch count and no time limit: the same artefact whatever the machine's load.  The
+# shipped dnn.npz was built with a 660 s time limit, which stopped it after 731 epochs; the
+# count is now that number, fixed.
 
 #: Genetic algorithm of ``dga`` (genes: decades of the coefficients around textbook scales,
 #: see :func:`_scales`).  ``polish``: ship the GA's best refined by a local gradient fit (the
@@ -97,17 +98,13 @@ def loop_points(n: int, rng: np.random.Generator, p: PlantParams):
     """``n`` random edge inputs where the closed loop spends its time: openings near the
     edge (half uniform within 10 um, half Laplace-distributed with a 2 um scale: the spool
     near null, the laps of the wear range), pressure drops uniform over [0, 1.1 x supply]
-    (chambers between return and supply), clearance half log-uniform, half uniform (a
-    log-uniform draw alone left the covered edges of the largest clearances, where a
-    lapped valve's null is set by their leakage, biased by 2e-4).  Returns ``(s, dp, c)``."""
+    (chambers between return and supply), clearance log-uniform.  Returns ``(s, dp, c)``."""
     h = n // 2
     s = np.concatenate([rng.uniform(-10e-6, 10e-6, h), rng.laplace(0.0, 2e-6, n - h)])
     dp = rng.uniform(0.0, 1.1 * p.supply_pressure_pa, n)
     lo, hi = valid_range(p)['radial_clearance_m']
-    c = np.concatenate([np.exp(rng.uniform(math.log(lo), math.log(hi), h)),
-                        rng.uniform(lo, hi, n - h)])
-    perm = rng.permutation(n)
-    return s, dp[perm], c[perm]
+    c = np.exp(rng.uniform(math.log(lo), math.log(hi), n))
+    return s, dp, c
 
 
 def edge_errors(surrogate, n: int = 20000, seed: int = 1, params: PlantParams | None = None):
