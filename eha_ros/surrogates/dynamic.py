@@ -83,10 +83,12 @@ The ``dnn`` network
 
 Why the ``dnn`` kernel is hand-written IR
     A plain ``@njit`` kernel of the same network (loops over the four edges and the 16-unit
-    layers, ``math.log``/``math.exp``, one scratch array per step) was measured against this
-    one in the same process and load (plant at dt = 1 us, controller at 1 kHz, best of 5 runs
-    of 0.3 s): 1700-2200 ns per plant step against 180-500 ns, and still 740-1120 ns with
-    ``fastmath`` and ``log`` for ``log1p``, i.e. 2-4x slower per plant step (hf: 80-100 ns).
+    layers, ``math.log1p``/``math.exp``, one scratch array per step) was measured against
+    this one in the same process and load (plant at dt = 1 us, controller at 1 kHz, best of 5
+    interleaved runs of 0.3 s of ``step_0p1`` and ``sine_0p1_10pi``, load average 2 on 2
+    cores): 640-910 ns per plant step against 170-220 ns (3.8-4.1x), and 330-480 ns
+    (1.9-2.2x) with ``fastmath`` and ``log`` for ``log1p``; hf 43-46 ns.  The bar for
+    replacing it was 1.5x.
     The IR's own logarithm and exponential are tested against numpy over their whole input
     range (``test_dnn_ir_log_*``, ``test_dnn_ir_exp_*``): :func:`dnn_ir_log`,
     :func:`dnn_ir_exp`.
