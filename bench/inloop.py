@@ -1,11 +1,13 @@
 """Surrogates in the closed loop against hf, judged against hf's own sensitivity: prints one
 JSON object (:mod:`eha_ros.evaluation` defines every figure).
 
-Cases: the reference's nine scenarios, ``step_1mm`` (large signal) and ``chirp_0p1``, at
-nominal wear and two off-grid wear points (off the wear grids of every table).  Noise-free:
-errors, yardstick, bounds and features per case, every model, and hf and the dynamic
-surrogates again at each of ``--large-dts`` (2, 5 and 10 us) against hf at 1 us, which gives
-``largest_steps``: per model the largest step meeting the bounds in every case.  With noise
+Cases: the reference's nine scenarios, ``step_1mm`` and ``step_0p3mm`` (large signals) and
+``chirp_0p1``, at every wear point of ``WEAR_POINTS`` (nominal, two off the wear grids of
+every table and six drawn at random over the dynamic surrogates' range,
+:mod:`eha_ros.evaluation`).  Noise-free: errors, yardstick, bounds and features per case,
+every model, and hf and the dynamic surrogates again at each of ``--large-dts`` (2, 5 and
+10 us) against hf at 1 us, which gives ``largest_steps``: per model the largest step meeting
+the bounds in every case.  With noise
 (nominal wear): ``--seeds`` seeds (20: the errors are heavy-tailed on small-signal holds, see
 :mod:`eha_ros.evaluation`) for ``--noise-models`` (default all but the reference's
 networks ``nn``, ``nn2``, which miss the noise-free bounds by far and cost 15-20x hf).
@@ -33,8 +35,8 @@ from eha_ros.physics import default_params  # noqa: E402
 from eha_ros.physics.params import replace  # noqa: E402
 from eha_ros.surrogates.registry import load_surrogate  # noqa: E402
 from eha_ros.evaluation import (CONTROLLER_PERIOD_S, DT_S, EXTRA_SCENARIOS,  # noqa
-                                       WEAR, largest_steps, noise_free, run,
-                                       summarise, with_noise)
+                                WEAR_POINTS, largest_steps, noise_free, run,
+                                summarise, with_noise)
 
 _SURROGATES = {}
 
@@ -56,7 +58,7 @@ def _task(task, job):
     base = default_params()
     if kind == 'noise':
         return with_noise(base, sc, {m: _SURROGATES[m] for m in noise_models}, seeds)
-    w = WEAR[wname]
+    w = WEAR_POINTS[wname]
     p = replace(base, noise_std_a=0.0)
     if w is not None:
         p = replace(p, overlap_supply_m=w[0], overlap_return_m=w[0], radial_clearance_m=w[1])
@@ -101,7 +103,7 @@ def main(argv=None):
         print(f'inloop: error: --large-dts {args.large_dts!r} is not a list of steps [s]',
               file=sys.stderr)
         return 2
-    wear = WEAR if args.wear == 'all' else {'nominal': None}
+    wear = WEAR_POINTS if args.wear == 'all' else {'nominal': None}
     noise_models = ([m for m in models if m in args.noise_models.split(',')]
                     if not args.no_noise and args.seeds > 0 else [])
     tasks = [('noise_free', wname, sc) for wname in wear for sc in scenarios]
@@ -140,7 +142,6 @@ def main(argv=None):
             f.write(text)
     print(text)
     return 0
-
 
 
 if __name__ == '__main__':

@@ -39,11 +39,20 @@ from eha_ros.physics.params import replace
 
 from eha_ros.surrogates.base import relative_error
 
-#: The cases beyond the reference's nine: a large signal and a chirp.
-EXTRA_SCENARIOS = ('step_1mm', 'chirp_0p1')
-#: Wear points (overlap, clearance) [m]: nominal and two off the grids of every table (the
-#: algebraic tables' DB1 grid, 2 um / 1.25 um steps; the dynamic table's log-spaced clearance).
-WEAR = {'nominal': None, 'worn_a': (3.1e-6, 3.9e-6), 'worn_b': (-0.7e-6, 1.6e-6)}
+#: The cases beyond the reference's nine: two large signals (1 mm and 0.3 mm steps) and a
+#: chirp.  (The reference's nine include the small signals, run at every wear point.)
+EXTRA_SCENARIOS = ('step_1mm', 'step_0p3mm', 'chirp_0p1')
+#: Wear points (overlap of both edges, clearance) [m] of the in-loop comparison: nominal; two
+#: off the grids of every table (the algebraic tables' DB1 grid, 2 um / 1.25 um steps; the
+#: dynamic table's log-spaced clearance); and six drawn at random, uniformly over the whole
+#: range the plant accepts for the dynamic surrogates (``WEAR_RANGES``: overlap -2..6 um,
+#: clearance 1..6 um), by ``rng = np.random.default_rng(2026)``, overlaps
+#: ``rng.uniform(-2e-6, 6e-6, 6)`` then clearances ``rng.uniform(1e-6, 6e-6, 6)``, rounded
+#: to 0.01 um and written out (so they never move with numpy's generator).
+WEAR_POINTS = {'nominal': None, 'worn_a': (3.1e-6, 3.9e-6), 'worn_b': (-0.7e-6, 1.6e-6),
+               'rand_1': (-0.57e-6, 5.53e-6), 'rand_2': (3.12e-6, 1.89e-6),
+               'rand_3': (1.74e-6, 4.26e-6), 'rand_4': (0.96e-6, 2.49e-6),
+               'rand_5': (0.84e-6, 5.83e-6), 'rand_6': (4.32e-6, 5.6e-6)}
 CONTROLLER_PERIOD_S = 1e-3
 DT_S = 1e-6
 #: Jack displacement per controller tick [m] below which the jack counts as stuck (1 nm per
@@ -97,11 +106,10 @@ def noise_free(p, scenario, surrogates, large_dts=(), keep_runs=False):
     ``large_dts`` [s] (keys ``'<model>@dt=<step>'``).  With ``keep_runs`` the
     :class:`SimResult` objects are returned under ``'runs'`` (for plots)."""
     ref = run(p, scenario)
+    cd = p.discharge_coefficient
     pert = {'half_step': run(p, scenario, dt=0.5 * DT_S),
-            'cd_plus_0.1%': run(replace(p, discharge_coefficient=p.discharge_coefficient
-                                          * 1.001), scenario),
-            'cd_minus_0.1%': run(replace(p, discharge_coefficient=p.discharge_coefficient
-                                           * 0.999), scenario)}
+            'cd_plus_0.1%': run(replace(p, discharge_coefficient=cd * 1.001), scenario),
+            'cd_minus_0.1%': run(replace(p, discharge_coefficient=cd * 0.999), scenario)}
     f_ref = features(ref)
     yard = {k: _errors(r, ref) for k, r in pert.items()}
     yard_jack = max(v['jack'] for v in yard.values())
