@@ -235,18 +235,19 @@ def _plot_comparison(runs, path: Path, scenario, result) -> None:
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(2, 1, figsize=(9, 6.5), sharex=True)
+    yard = set(result['yardstick']['runs'])  # hf at half the step, hf with Cd changed
     for ax, key, scale, unit in ((axes[0], 'jack_position_m', 1e3, 'mm'),
                                  (axes[1], 'p12_pa', 1e-6, 'MPa')):
         hf = runs['hf']
         first = True
         for name, r in runs.items():
-            if name in ('half_step', 'cd_plus_0.1%', 'cd_minus_0.1%'):
+            if name in yard:
                 ax.plot(r.t, r[key] * scale, color='0.6', lw=3, alpha=0.6,
                         label='hf yardstick (dt/2, Cd +-0.1 %)' if first else None)
                 first = False
         ax.plot(hf.t, hf[key] * scale, color='k', lw=1.2, label='hf')
         for name, r in runs.items():
-            if name in ('hf', 'half_step', 'cd_plus_0.1%', 'cd_minus_0.1%') or '@' in name:
+            if name == 'hf' or name in yard or '@' in name:
                 continue
             ax.plot(r.t, r[key] * scale, lw=0.9, ls='-' if name in DYNAMIC_MODELS else '--',
                     label=name)
