@@ -1,0 +1,273 @@
+"""The plant's fixed-step kernel: ``run`` advances the state by a number of steps, open or
+closed loop, with the high-fidelity fluid block or a surrogate's kernel.
+
+Named ``loop`` for the time loop it holds (and the closed loop it may run): its arguments are
+grouped in named tuples (numba tuples): :class:`Clock` (which steps, of what length, under
+which noise), :class:`ClosedLoop` (controller, command and record; :data:`OPEN_LOOP` for the
+coil current held) and :class:`Kernel` (a surrogate's kernel and its data; ``None`` for the
+high-fidelity block: a ``None`` argument removes its branches when the kernel is compiled).
+An open and a closed loop share one compiled kernel (per fluid block).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import numpy as np
+from numba import njit
+
+from .commands import command_value
+from .jack import jack_step, quantise, surface_position
+from .servovalve import (coil_current, flapper_damping, flapper_step, spool_gains, spool_step,
+                         torque_motor_force)
+from .state import (N_REC, S_FTM, S_ICOIL, S_P1, S_P1T, S_P2, S_P2T, S_PLAY, S_Q1L, S_Q2L,
+                    S_QJ, S_SURF, S_VF, S_VJ, S_VS, S_XF, S_XJ, S_XS, STATE_NAMES)
+from .valve import chamber_step, net_flow, valve_coefficients, valve_constants
+
+__all__ = ['Clock', 'ClosedLoop', 'OPEN_LOOP', 'Kernel', 'run', 'pid', 'record',
+           'SimulationDiverged', 'diverged']
+
+# state entries watched for divergence, in the order they are reported
+_WATCHED = (S_XF, S_VF, S_XS, S_P1T, S_P2T, S_XJ, S_VJ)
+_DIVERGED_ABS = 1e12  # any watched state beyond this (in SI units) has diverged
+
+
+class SimulationDiverged(RuntimeError):
+    """A state became NaN, infinite or absurdly large."""
+
+
+def diverged(status: int, t_s: float) -> SimulationDiverged:
+    """The error for a non-zero ``status`` of :func:`run` at time ``t_s``."""
+    name = STATE_NAMES[_WATCHED[status - 1]]
+    return SimulationDiverged(f'simulation diverged: state {name} became non-finite or '
+                              f'exceeded {_DIVERGED_ABS:g} at t = {t_s:.6g} s')
+
+
+class Clock(NamedTuple):
+    """``n_steps`` steps from the global step ``n0``, of ``dt`` s (``dt_ns`` whole ns), under
+    the noise samples ``noise[k]``, each covering ``[k noise_dt, (k+1) noise_dt)``."""
+
+    n0: int
+    n_steps: int
+    dt: float
+    dt_ns: int
+    noise: np.ndarray
+    noise_dt: float
+
+
+class ClosedLoop(NamedTuple):
+    """The controller (state ``ctrl``, see :func:`pid`) every ``steps_per_tick`` steps against
+    the command ``(kind, args, com_t, com_v)``; every ``rec_every``-th tick, the first after
+    ``rec_wait`` unrecorded ticks, recorded into ``rec`` from its row 0."""
+
+    ctrl: np.ndarray
+    kind: int
+    args: np.ndarray
+    com_t: np.ndarray
+    com_v: np.ndarray
+    steps_per_tick: int
+    rec_every: int
+    rec_wait: int
+    rec: np.ndarray
+
+
+#: The open loop: no controller ticks, nothing recorded (the arrays are never read).
+OPEN_LOOP = ClosedLoop(np.zeros(3), 0, np.zeros(8), np.zeros(0), np.zeros(0), 0, 1, 0,
+                       np.zeros((0, N_REC)))
+
+
+class Kernel(NamedTuple):
+    """A surrogate's numba kernel and the data it is called with."""
+
+    kernel: Callable
+    data: tuple
+
+
+@njit(cache=True, inline='always')
+def pid(ctrl, error, period, inv_period, p):
+    """PID on the position error with conditional-integration anti-windup; ctrl is
+    [integral, previous error, has previous]."""
+    d = (error - ctrl[1]) * inv_period if ctrl[2] != 0.0 else 0.0
+    integ = ctrl[0] + error * period
+    u = p.kp_a_m * error + p.ki_a_m_s * integ + p.kd_a_s_m * d
+    lim = p.current_limit_a
+    if u > lim:
+        u = lim
+    elif u < -lim:
+        u = -lim
+    else:
+        ctrl[0] = integ
+    ctrl[1] = error
+    ctrl[2] = 1.0
+    return u
+
+
+@njit(cache=True)
+def record(rec, row, t, r, i_cmd, s, p):
+    rec[row, 0] = t
+    rec[row, 1] = r
+    rec[row, 2] = i_cmd
+    rec[row, 3] = s[S_ICOIL]
+    rec[row, 4] = s[S_FTM]
+    rec[row, 5] = s[S_XF]
+    rec[row, 6] = s[S_XS]
+    rec[row, 7] = s[S_P1]
+    rec[row, 8] = s[S_P2]
+    rec[row, 9] = s[S_P1] - s[S_P2]
+    rec[row, 10] = s[S_QJ]
+    rec[row, 11] = s[S_XJ]
+    rec[row, 12] = s[S_VJ]
+    rec[row, 13] = s[S_SURF]
+    rec[row, 14] = quantise(s[S_SURF], p.sensor_resolution_m)
+
+
+@njit(cache=True)
+def _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q2l):
+    s[S_PLAY] = y
+    s[S_XF] = xf
+    s[S_VF] = vf
+    s[S_XS] = xs
+    s[S_VS] = vs
+    s[S_P1T] = p1t
+    s[S_P2T] = p2t
+    s[S_P1] = p1
+    s[S_P2] = p2
+    s[S_XJ] = xj
+    s[S_VJ] = vj
+    s[S_SURF] = surf
+    s[S_QJ] = qj
+    s[S_ICOIL] = i
+    s[S_FTM] = f
+    s[S_Q1L] = q1l
+    s[S_Q2L] = q2l
+
+
+@njit  # not cached on disk: see below
+def run(s, i_cmd, p, clock, loop, p12_kernel, flows_kernel):
+    """Advance the plant state ``s`` (in place) by ``clock.n_steps`` steps of ``clock.dt``.
+
+    Fluid block: the high-fidelity one when both kernels are ``None``.  ``p12_kernel`` (an
+    algebraic surrogate): the block is replaced by ``P12 = kernel(data, XS, QJ, overlap,
+    clearance)`` with the load flow imposed by the jack, ``QJ = AJ dXJ/dt``; P1, P2 are then
+    reported as mid-pressure +- P12/2.  ``flows_kernel`` (a dynamic surrogate): only the
+    metering-edge flows come from the surrogate, ``(Q1L, Q2L) = kernel(data, XS, P1, P2,
+    OSSV, ORSV)``; chambers, leakage, cavitation clip and jack stay the high-fidelity ones.
+
+    ``loop`` :data:`OPEN_LOOP`: the coil current command ``i_cmd`` is held.  Otherwise the
+    controller runs every ``loop.steps_per_tick`` steps on the quantised sensor and the
+    ticks are recorded as :class:`ClosedLoop` says, each before the plant moves on.
+
+    The time of step ``n`` is ``(n dt_ns) 1e-9`` s, from the integer nanoseconds a ROS clock
+    carries, so the graph evaluates commands at the same times bit for bit.  Returns
+    ``(status, steps done, rows recorded, i_cmd)``: status 0, or 1 + the index into
+    ``_WATCHED`` of the first state that diverged.
+
+    Not cached on disk: a kernel (a numba function passed in an argument) is typed by its
+    object, not its code, so a cache entry keyed by it never matches in another process and,
+    once that object is gone, breaks the saving of the cache index for every later entry.  The
+    blocks it calls are cached; this function compiles in a few seconds per process.
+    """
+    dt = clock.dt
+    n_steps = clock.n_steps
+    noise = clock.noise
+    cf = flapper_damping(p)
+    drive, c_eq = spool_gains(p)
+    kvol = p.bulk_modulus_pa / p.chamber_volume_m3
+    ps = p.supply_pressure_pa
+    pr = p.return_pressure_pa
+    pvap = p.vapour_pressure_pa
+    aj = p.jack_area_m2
+    clk = p.leakage_coeff_m3_s_pa
+    q = p.sensor_resolution_m
+    vc = valve_constants(p)
+    lap = p.overlap_supply_m
+    lap_r = p.overlap_return_m
+    clr = p.radial_clearance_m
+    pmid = 0.5 * (ps + pr)
+    steps_per_noise = dt / clock.noise_dt
+    y = s[S_PLAY]
+    xf = s[S_XF]
+    vf = s[S_VF]
+    xs = s[S_XS]
+    vs = s[S_VS]
+    p1t = s[S_P1T]
+    p2t = s[S_P2T]
+    p1 = s[S_P1]
+    p2 = s[S_P2]
+    xj = s[S_XJ]
+    vj = s[S_VJ]
+    surf = s[S_SURF]
+    qj = s[S_QJ]
+    i = s[S_ICOIL]
+    f = s[S_FTM]
+    q1l = s[S_Q1L]
+    q2l = s[S_Q2L]
+    status = 0
+    done = 0
+    row = 0
+    period = loop.steps_per_tick * dt
+    inv_period = 1.0 / period if loop.steps_per_tick > 0 else 0.0
+    until_tick = 0
+    until_rec = loop.rec_wait
+    for j in range(n_steps):
+        n = clock.n0 + j
+        if loop.steps_per_tick > 0:
+            if until_tick == 0:
+                until_tick = loop.steps_per_tick
+                t = (n * clock.dt_ns) * 1e-9
+                r = command_value(loop.kind, loop.args, loop.com_t, loop.com_v, t)
+                i_cmd = pid(loop.ctrl, r - quantise(surf, q), period, inv_period, p)
+                if until_rec == 0:
+                    until_rec = loop.rec_every
+                    _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f,
+                          q1l, q2l)
+                    record(loop.rec, row, t, r, i_cmd, s, p)
+                    row += 1
+                until_rec -= 1
+            until_tick -= 1
+        # every derivative from the state at the start of the step (forward Euler, as a
+        # fixed-step ode1 solver evaluates a block diagram); the blocks are then independent
+        # within a step, which lets the processor overlap them
+        k = int(n * steps_per_noise)
+        y, i = coil_current(y, i_cmd, noise[k], p)
+        f = torque_motor_force(i, xf, p)
+        if p12_kernel is not None:
+            qj = aj * vj
+            q1l = qj
+            q2l = qj
+            p12 = p12_kernel.kernel(p12_kernel.data, xs, qj, lap, clr)
+            p1 = pmid + 0.5 * p12
+            p2 = pmid - 0.5 * p12
+        else:
+            if flows_kernel is not None:
+                q1l, q2l = flows_kernel.kernel(flows_kernel.data, xs, p1, p2, lap, lap_r)
+            else:
+                (rl1s, bl1s, r41s, rl1r, bl1r, r41r,
+                 rl2s, bl2s, r42s, rl2r, bl2r, r42r) = valve_coefficients(xs, vc)
+                q1l = net_flow(ps - p1, rl1s, bl1s, r41s, p1 - pr, rl1r, bl1r, r41r)
+                q2l = net_flow(p2 - pr, rl2r, bl2r, r42r, ps - p2, rl2s, bl2s, r42s)
+            qj = 0.5 * (q1l + q2l)
+            p12 = p1 - p2
+        xs_old = xs
+        xs, vs = spool_step(xs, vs, xf, qj, drive, c_eq, p, dt)
+        xf, vf = flapper_step(xf, vf, xs_old, f, cf, p, dt)
+        qm = aj * vj + clk * p12
+        xj, vj = jack_step(xj, vj, p12, p, dt)
+        if p12_kernel is not None:
+            p1t = p1  # the surrogate's pressures at the start of this step
+            p2t = p2
+        else:
+            p1t, p2t, p1, p2 = chamber_step(p1t, p2t, q1l, q2l, qm, kvol, pvap, dt)
+        surf = surface_position(surf, xj, p)
+        done = j + 1
+        chk = xf + vf + xs + p1t + p2t + xj + vj
+        if not (abs(chk) < _DIVERGED_ABS):
+            vals = (xf, vf, xs, p1t, p2t, xj, vj)
+            status = len(vals)
+            for m in range(len(vals)):
+                if not (abs(vals[m]) < _DIVERGED_ABS):
+                    status = m + 1
+                    break
+            break
+    _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q2l)
+    return status, done, row, i_cmd
