@@ -17,7 +17,8 @@ from eha_ros.physics.fluid import P12  # noqa: E402
 from eha_ros.physics.params import ParameterError, replace  # noqa: E402
 from eha_ros.physics.plant import PositionController  # noqa: E402
 from eha_ros.physics.stability import FLAPPER, stability_limits  # noqa: E402
-from eha_ros.physics.state import STATE_NAMES, S_P1T, initial_state  # noqa: E402
+from eha_ros.physics.state import (CAVITATION, END_STOP, OK, S_P1, S_P1T, S_P2,  # noqa: E402
+                                   S_XJ, STATE_NAMES, initial_state, operating_condition)
 from eha_ros.physics.servovalve import flapper_damping, flapper_step, spool_gains  # noqa
 
 P = default_params()
@@ -215,3 +216,24 @@ def test_state_names_cover_the_state():
     assert len(STATE_NAMES) == initial_state(P).size
     s = initial_state(P)
     assert_allclose(s[7], s[8], rtol=1e-9)  # symmetric valve at null: P1 = P2
+
+
+def test_operating_condition_of_the_state():
+    """Closed forms: the jack at either end of its stroke is END_STOP (whatever the
+    pressures); a chamber clipped at the vapour pressure is CAVITATION; the rest state and the
+    jack one ulp inside its stroke are OK."""
+    s = initial_state(P)
+    assert P.vapour_pressure_pa < min(s[S_P1], s[S_P2]) and operating_condition(s, P) == OK
+    for xj in (P.jack_stroke_m, -P.jack_stroke_m):
+        e = s.copy()
+        e[S_XJ] = xj
+        assert operating_condition(e, P) == END_STOP
+        e[S_P1] = P.vapour_pressure_pa
+        assert operating_condition(e, P) == END_STOP
+        e = s.copy()
+        e[S_XJ] = np.nextafter(xj, 0.0)
+        assert operating_condition(e, P) == OK
+    for k in (S_P1, S_P2):
+        c = s.copy()
+        c[k] = P.vapour_pressure_pa
+        assert operating_condition(c, P) == CAVITATION

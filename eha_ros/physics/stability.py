@@ -13,7 +13,7 @@ from typing import NamedTuple
 from .fluid import FluidBlock
 from .params import ParameterError, PlantParams
 from .servovalve import magnetic_stiffness, spool_gains
-from .valve import orifice_flow, valve_coefficients, valve_constants
+from .valve import fluid_constants, orifice_flow, valve_coefficients, valve_constants
 
 __all__ = ['Limit', 'FLAPPER', 'JACK_SPRING', 'JACK_VISCOUS', 'CHAMBER', 'SPOOL', 'FLUID',
            'stability_limits', 'stability_limit', 'dt_to_ns', 'check_dt']
@@ -35,7 +35,8 @@ class Limit(NamedTuple):
 def _edge_conductance_max(p: PlantParams) -> float:
     """Largest flow conductance dQ/dp [m^3/(s Pa)] of one chamber, over the spool stroke."""
     worst = 0.0
-    dp_ref = 0.0 if p.cd_model == 0.0 else 1e-3 * (p.supply_pressure_pa - p.return_pressure_pa)
+    reynolds = fluid_constants(p).reynolds
+    dp_ref = 0.0 if reynolds else 1e-3 * (p.supply_pressure_pa - p.return_pressure_pa)
     for xs in (-p.spool_stroke_m, 0.0, p.spool_stroke_m):
         co = valve_coefficients(xs, valve_constants(p))
         g = 0.0

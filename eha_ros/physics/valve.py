@@ -33,15 +33,39 @@ Chambers.  ``dP1T/dt = (Q1L - QM) Bet/Vol``, ``dP2T/dt = (QM - Q2L) Bet/Vol`` wi
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-__all__ = ['edge_constants', 'valve_constants', 'net_flow', 'edge_coefficients', 'orifice_flow',
-           'valve_coefficients', 'valve_flows', 'chamber_step', 'orifice_pressure_drop',
-           'steady_pressures']
+__all__ = ['FluidConstants', 'fluid_constants', 'edge_constants', 'valve_constants', 'net_flow',
+           'edge_coefficients', 'orifice_flow', 'valve_coefficients', 'valve_flows',
+           'chamber_step', 'orifice_pressure_drop', 'steady_pressures']
 
 _TINY = 1e-300
+
+
+class FluidConstants(NamedTuple):
+    """The wear-independent constants of the metering edges, as :func:`edge_constants` takes
+    them after the clearance and laps."""
+
+    port_width_m: float
+    cd_eff: float  # Cd_inf (1 - Khsv)
+    mu_pa_s: float  # rho nu
+    rho_kg_m3: float
+    eccentricity: float
+    critical_flow_number: float
+    reynolds: bool  # the Reynolds-dependent Cd (cd_model)
+
+
+@njit(cache=True, inline='always')
+def fluid_constants(p):
+    """:class:`FluidConstants` of the parameters ``p``: their one derivation, for every
+    caller of :func:`edge_constants`."""
+    return FluidConstants(p.port_width_m, p.discharge_coefficient * (1.0 - p.valve_degradation),
+                          p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s,
+                          p.fluid_density_kg_m3, p.eccentricity_ratio, p.critical_flow_number,
+                          p.cd_model == 0.0)
 
 
 @njit(cache=True, inline='always')
@@ -66,11 +90,9 @@ def edge_constants(clearance_m, lap_supply_m, lap_return_m, port_width_m, cd_eff
 def valve_constants(p):
     """Spool-independent constants of the metering edges (:func:`edge_constants` at the
     parameters' clearance and laps), computed once per run."""
-    return edge_constants(p.radial_clearance_m, p.overlap_supply_m, p.overlap_return_m,
-                          p.port_width_m, p.discharge_coefficient * (1.0 - p.valve_degradation),
-                          p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s,
-                          p.fluid_density_kg_m3, p.eccentricity_ratio, p.critical_flow_number,
-                          p.cd_model == 0.0)
+    w, cd, mu, rho, ecc, lc, reynolds = fluid_constants(p)
+    return edge_constants(p.radial_clearance_m, p.overlap_supply_m, p.overlap_return_m, w, cd,
+                          mu, rho, ecc, lc, reynolds)
 
 
 @njit(cache=True, inline='always')
