@@ -13,7 +13,7 @@ import physics_reference as ref  # noqa: E402
 
 from eha_ros.physics import (Plant, SimulationDiverged, default_params, get_scenario,  # noqa
                              load_scenarios, simulate, stability_limit)
-from eha_ros.physics.fluid import P12  # noqa: E402
+from eha_ros.physics.loop import P12  # noqa: E402
 from eha_ros.physics.params import ParameterError, replace  # noqa: E402
 from eha_ros.physics.plant import PositionController  # noqa: E402
 from eha_ros.physics.stability import FLAPPER, stability_limits  # noqa: E402

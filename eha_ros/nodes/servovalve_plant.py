@@ -57,7 +57,8 @@ from eha_ros.physics import (ParameterError, Plant, SimulationDiverged, get_scen
                              load_params)
 from eha_ros.physics.events import EventSchedule, parse_event, PLANT_RUNTIME
 from eha_ros.physics.params import replace
-from eha_ros.physics.state import CAVITATION, END_STOP, OK, operating_condition
+from eha_ros.physics.state import (CAVITATION, END_STOP, initial_state, OK,
+                                   operating_condition)
 from eha_ros.physics.valve_test import PreflightCheck, ValveTest
 
 from .common import (advertise, apply_realtime_settings, begin_timing, declare,
@@ -229,7 +230,7 @@ class ServovalvePlant(Node):
                 self.plant.hold(self.steps_per_tick)
             elif self.preflight is not None and self.preflight_tick < self.preflight.n_ticks:
                 if self.preflight_tick == 0:  # from the actuator at rest
-                    self.plant.state[:] = self._rest_state()
+                    self.plant.state[:] = initial_state(self.plant.params)
                 self.test_sample = None
                 self.plant.advance(float(self.preflight.command_a[self.preflight_tick]),
                                    self.steps_per_tick)
@@ -247,10 +248,6 @@ class ServovalvePlant(Node):
             self.done = True
             self.get_logger().info(f'scenario complete at t = {self.plant.time_s:.6g} s')
         return True
-
-    def _rest_state(self):
-        from eha_ros.physics.state import initial_state
-        return initial_state(self.plant.params)
 
     def _state_msg(self) -> ActuatorState:
         """The tick's state. One message object is filled every tick (publishing serializes

@@ -1,5 +1,6 @@
 """The plant's fixed-step kernel: ``run`` advances the state by a number of steps, open or
-closed loop, with the high-fidelity fluid block or a surrogate's kernel.
+closed loop, with the high-fidelity fluid block or a surrogate's kernel; :class:`FluidBlock`,
+what a surrogate provides to be that kernel.
 
 Named ``loop`` for the time loop it holds (and the closed loop it may run): its arguments are
 grouped in named tuples (numba tuples): :class:`Clock` (which steps, of what length, under
@@ -11,21 +12,23 @@ An open and a closed loop share one compiled kernel (per fluid block).
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from collections import namedtuple
+from typing import Callable, Protocol, runtime_checkable
 
 import numpy as np
 from numba import njit
 
 from .commands import command_value
 from .jack import jack_step, quantise, surface_position
+from .params import ParameterError, PlantParams
 from .servovalve import (coil_current, flapper_damping, flapper_step, spool_gains, spool_step,
                          torque_motor_force)
-from .state import (N_REC, S_FTM, S_ICOIL, S_P1, S_P1T, S_P2, S_P2T, S_PLAY, S_Q1L, S_Q2L,
-                    S_QJ, S_SURF, S_VF, S_VJ, S_VS, S_XF, S_XJ, S_XS, STATE_NAMES)
+from .state import (N_REC, S_FTM, S_ICOIL, S_P1, S_P1T, S_P2, S_P2T, S_QJ, S_SURF, S_VF, S_VJ,
+                    S_XF, S_XJ, S_XS, STATE_NAMES)
 from .valve import chamber_step, net_flow, valve_coefficients, valve_constants
 
-__all__ = ['Clock', 'ClosedLoop', 'OPEN_LOOP', 'Kernel', 'run', 'pid', 'record',
-           'SimulationDiverged', 'diverged']
+__all__ = ['Clock', 'ClosedLoop', 'OPEN_LOOP', 'Kernel', 'P12', 'CHAMBER_FLOWS', 'FluidBlock',
+           'fluid_kernels', 'run', 'pid', 'record', 'SimulationDiverged', 'diverged']
 
 # state entries watched for divergence, in the order they are reported
 _WATCHED = (S_XF, S_VF, S_XS, S_P1T, S_P2T, S_XJ, S_VJ)
@@ -43,44 +46,63 @@ def diverged(status: int, t_s: float) -> SimulationDiverged:
                               f'exceeded {_DIVERGED_ABS:g} at t = {t_s:.6g} s')
 
 
-class Clock(NamedTuple):
-    """``n_steps`` steps from the global step ``n0``, of ``dt`` s (``dt_ns`` whole ns), under
-    the noise samples ``noise[k]``, each covering ``[k noise_dt, (k+1) noise_dt)``."""
-
-    n0: int
-    n_steps: int
-    dt: float
-    dt_ns: int
-    noise: np.ndarray
-    noise_dt: float
-
-
-class ClosedLoop(NamedTuple):
-    """The controller (state ``ctrl``, see :func:`pid`) every ``steps_per_tick`` steps against
-    the command ``(kind, args, com_t, com_v)``; every ``rec_every``-th tick, the first after
-    ``rec_wait`` unrecorded ticks, recorded into ``rec`` from its row 0."""
-
-    ctrl: np.ndarray
-    kind: int
-    args: np.ndarray
-    com_t: np.ndarray
-    com_v: np.ndarray
-    steps_per_tick: int
-    rec_every: int
-    rec_wait: int
-    rec: np.ndarray
-
-
+#: ``n_steps`` steps from the global step ``n0``, of ``dt`` s (``dt_ns`` whole ns), under the
+#: noise samples ``noise[k]`` (:class:`.plant.NoiseSource`), each over ``[k, k+1) noise_dt``.
+Clock = namedtuple('Clock', 'n0 n_steps dt dt_ns noise noise_dt')
+#: The controller (state ``ctrl``, see :func:`pid`) every ``steps_per_tick`` steps against the
+#: command ``(kind, args, com_t, com_v)``; every ``rec_every``-th tick, the first after
+#: ``rec_wait`` unrecorded ticks, recorded into ``rec`` from its row 0.
+ClosedLoop = namedtuple('ClosedLoop', 'ctrl kind args com_t com_v steps_per_tick rec_every '
+                        'rec_wait rec')
 #: The open loop: no controller ticks, nothing recorded (the arrays are never read).
 OPEN_LOOP = ClosedLoop(np.zeros(3), 0, np.zeros(8), np.zeros(0), np.zeros(0), 0, 1, 0,
                        np.zeros((0, N_REC)))
+#: A surrogate's numba kernel and the data it is called with.
+Kernel = namedtuple('Kernel', 'kernel data')
 
 
-class Kernel(NamedTuple):
-    """A surrogate's numba kernel and the data it is called with."""
+#: ``kernel_output`` of an algebraic surrogate:
+#: ``kernel(data, xs_m, q_m3_s, overlap_m, clearance_m) -> P12 [Pa]``.
+P12 = 'p12'
+#: ``kernel_output`` of a dynamic surrogate:
+#: ``kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m) -> (Q1L, Q2L) [m^3/s]``.
+CHAMBER_FLOWS = 'chamber_flows'
 
+
+@runtime_checkable
+class FluidBlock(Protocol):
+    """A surrogate of the fluid-dynamic block, as the plant calls it."""
+
+    name: str
+    #: the numba kernel, called inside the plant's loop (signature after ``kernel_output``)
     kernel: Callable
-    data: tuple
+    #: :data:`P12` or :data:`CHAMBER_FLOWS`
+    kernel_output: str
+
+    def prepare(self, p: PlantParams) -> tuple:
+        """The kernel's data for the parameters ``p``; ValueError if it refuses them."""
+
+    def stability_limit(self, p: PlantParams) -> tuple[float, str]:
+        """``(dt_s, reason)``: the largest stable step under this block's feedback, in place
+        of the high-fidelity chamber bound."""
+
+    def check_params(self, p: PlantParams) -> None:
+        """Refuse parameters the block was not built for (ValueError)."""
+
+
+def fluid_kernels(fluid: FluidBlock | None, p: PlantParams) -> tuple:
+    """``(p12_kernel, flows_kernel)`` of :func:`.loop.run` for ``fluid`` at the parameters
+    ``p``: ``(None, None)`` for the high-fidelity block (``fluid`` ``None``)."""
+    if fluid is None:
+        return None, None
+    if not isinstance(fluid, FluidBlock) or fluid.kernel_output not in (P12, CHAMBER_FLOWS):
+        raise ParameterError(f'fluid must be a FluidBlock with kernel_output {P12!r} or '
+                             f'{CHAMBER_FLOWS!r}')
+    try:
+        kernel = Kernel(fluid.kernel, tuple(fluid.prepare(p)))
+    except ValueError as exc:  # a surrogate refusing these parameters
+        raise ParameterError(str(exc)) from None
+    return (kernel, None) if fluid.kernel_output == P12 else (None, kernel)
 
 
 @njit(cache=True, inline='always')
@@ -104,42 +126,19 @@ def pid(ctrl, error, period, inv_period, p):
 
 @njit(cache=True)
 def record(rec, row, t, r, i_cmd, s, p):
-    rec[row, 0] = t
-    rec[row, 1] = r
-    rec[row, 2] = i_cmd
-    rec[row, 3] = s[S_ICOIL]
-    rec[row, 4] = s[S_FTM]
-    rec[row, 5] = s[S_XF]
-    rec[row, 6] = s[S_XS]
-    rec[row, 7] = s[S_P1]
-    rec[row, 8] = s[S_P2]
-    rec[row, 9] = s[S_P1] - s[S_P2]
-    rec[row, 10] = s[S_QJ]
-    rec[row, 11] = s[S_XJ]
-    rec[row, 12] = s[S_VJ]
-    rec[row, 13] = s[S_SURF]
-    rec[row, 14] = quantise(s[S_SURF], p.sensor_resolution_m)
+    """Row ``row`` of ``rec`` (:data:`.state.RECORD_FIELDS`) at time ``t``, command ``r``."""
+    values = (t, r, i_cmd, s[S_ICOIL], s[S_FTM], s[S_XF], s[S_XS], s[S_P1], s[S_P2],
+              s[S_P1] - s[S_P2], s[S_QJ], s[S_XJ], s[S_VJ], s[S_SURF],
+              quantise(s[S_SURF], p.sensor_resolution_m))
+    for k in range(len(values)):
+        rec[row, k] = values[k]
 
 
 @njit(cache=True)
-def _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q2l):
-    s[S_PLAY] = y
-    s[S_XF] = xf
-    s[S_VF] = vf
-    s[S_XS] = xs
-    s[S_VS] = vs
-    s[S_P1T] = p1t
-    s[S_P2T] = p2t
-    s[S_P1] = p1
-    s[S_P2] = p2
-    s[S_XJ] = xj
-    s[S_VJ] = vj
-    s[S_SURF] = surf
-    s[S_QJ] = qj
-    s[S_ICOIL] = i
-    s[S_FTM] = f
-    s[S_Q1L] = q1l
-    s[S_Q2L] = q2l
+def _save(s, *values):
+    """``s[:] = values``, given in the order of :data:`.state.STATE_NAMES`."""
+    for k in range(len(values)):
+        s[k] = values[k]
 
 
 @njit  # not cached on disk: see below
@@ -185,23 +184,7 @@ def run(s, i_cmd, p, clock, loop, p12_kernel, flows_kernel):
     clr = p.radial_clearance_m
     pmid = 0.5 * (ps + pr)
     steps_per_noise = dt / clock.noise_dt
-    y = s[S_PLAY]
-    xf = s[S_XF]
-    vf = s[S_VF]
-    xs = s[S_XS]
-    vs = s[S_VS]
-    p1t = s[S_P1T]
-    p2t = s[S_P2T]
-    p1 = s[S_P1]
-    p2 = s[S_P2]
-    xj = s[S_XJ]
-    vj = s[S_VJ]
-    surf = s[S_SURF]
-    qj = s[S_QJ]
-    i = s[S_ICOIL]
-    f = s[S_FTM]
-    q1l = s[S_Q1L]
-    q2l = s[S_Q2L]
+    y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q2l = s  # STATE_NAMES
     status = 0
     done = 0
     row = 0

@@ -59,9 +59,7 @@ def spool_grid(n: int = 133, stroke_m: float | None = None, density: float = 4.0
 def _transient_kernel(xs, q, lap_s, lap_r, clr, consts, n_steps, dt, out_p1, out_p2):
     """Integrate every point from zero pressure for ``n_steps`` steps, with the valve's own
     edge equations (:mod:`.valve`)."""
-    (ps, pr, pvap, kvol, clk, w, cd, mu, rho, ecc, lc, reynolds) = (
-        consts[0], consts[1], consts[2], consts[3], consts[4], consts[5], consts[6],
-        consts[7], consts[8], consts[9], consts[10], consts[11])
+    ps, pr, pvap, kvol, clk, w, cd, mu, rho, ecc, lc, reynolds = consts
     n = xs.size
     n_blocks = (n + _BLOCK - 1) // _BLOCK
     for b in prange(n_blocks):

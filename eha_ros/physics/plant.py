@@ -17,9 +17,9 @@ in whole nanoseconds, so a run advanced in chunks (the ROS plant) is bit-identic
 advanced at once.
 
 Named ``plant`` for what it offers: :class:`Plant` (stepped from outside),
-:class:`PositionController`, :func:`simulate`.  The parts live by role: the state layout in
-:mod:`.state`, the kernel in :mod:`.loop`, the noise in :mod:`.noise`, the step's stability in
-:mod:`.stability`, the surrogate interface in :mod:`.fluid`.
+:class:`PositionController`, :func:`simulate`, with the :class:`NoiseSource` they draw.  The
+parts live by role: the state layout in :mod:`.state`, the kernel and the surrogate interface
+in :mod:`.loop`, the step's stability in :mod:`.stability`.
 """
 
 from __future__ import annotations
@@ -32,15 +32,37 @@ import numpy as np
 
 from .commands import Scenario, get_scenario
 from .events import EventSchedule
-from .fluid import FluidBlock, fluid_kernels
 from .jack import quantise
-from .loop import OPEN_LOOP, Clock, ClosedLoop, diverged, pid, record, run
-from .noise import NoiseSource
+from .loop import (OPEN_LOOP, Clock, ClosedLoop, FluidBlock, diverged, fluid_kernels, pid,
+                   record, run)
 from .params import ParameterError, PlantParams, default_params
 from .stability import check_dt, dt_to_ns
 from .state import N_REC, RECORD_FIELDS, S_SURF, STATE_NAMES, initial_state
 
-__all__ = ['SimResult', 'Plant', 'PositionController', 'simulate']
+__all__ = ['NoiseSource', 'SimResult', 'Plant', 'PositionController', 'simulate']
+
+
+class NoiseSource:
+    """Band-limited white current noise: held Gaussian samples from a seeded generator.
+
+    Samples are drawn in order and kept, so any run with the same seed sees the same noise
+    whatever the chunks it is advanced in.
+    """
+
+    def __init__(self, std_a: float, sample_time_s: float, seed: int):
+        self.std_a = float(std_a)
+        self.sample_time_s = float(sample_time_s)
+        self._rng = np.random.default_rng(seed)
+        self._samples = np.zeros(0)
+
+    def samples_until(self, t_end_s: float) -> np.ndarray:
+        """All samples covering ``[0, t_end_s]`` (drawing more as needed)."""
+        need = int(t_end_s / self.sample_time_s) + 2
+        if need > self._samples.size:
+            extra = max(need - self._samples.size, 1024)
+            new = self._rng.standard_normal(extra) * self.std_a
+            self._samples = np.concatenate([self._samples, new])
+        return self._samples
 
 
 @dataclasses.dataclass

@@ -8,9 +8,9 @@ a surrogate's bound replaces the chamber bound by key (:data:`CHAMBER`).
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from collections import namedtuple
 
-from .fluid import FluidBlock
+from .loop import FluidBlock
 from .params import ParameterError, PlantParams
 from .servovalve import magnetic_stiffness, spool_gains
 from .valve import fluid_constants, orifice_flow, valve_coefficients, valve_constants
@@ -23,30 +23,24 @@ FLAPPER, JACK_SPRING, JACK_VISCOUS, CHAMBER, SPOOL, FLUID = (
     'flapper', 'jack_spring', 'jack_viscous', 'chamber', 'spool', 'fluid')
 
 
-class Limit(NamedTuple):
-    """The largest stable step ``dt_s`` [s] of the block ``key``, with the ``reason`` that
-    error messages name."""
-
-    key: str
-    dt_s: float
-    reason: str
+#: The largest stable step ``dt_s`` [s] of the block ``key``, with the ``reason`` that error
+#: messages name.
+Limit = namedtuple('Limit', 'key dt_s reason')
 
 
 def _edge_conductance_max(p: PlantParams) -> float:
     """Largest flow conductance dQ/dp [m^3/(s Pa)] of one chamber, over the spool stroke."""
     worst = 0.0
-    reynolds = fluid_constants(p).reynolds
-    dp_ref = 0.0 if reynolds else 1e-3 * (p.supply_pressure_pa - p.return_pressure_pa)
+    dp_ref = (0.0 if fluid_constants(p).reynolds
+              else 1e-3 * (p.supply_pressure_pa - p.return_pressure_pa))
     for xs in (-p.spool_stroke_m, 0.0, p.spool_stroke_m):
         co = valve_coefficients(xs, valve_constants(p))
-        g = 0.0
         for e in range(4):
             rl, bl, r4 = co[3 * e], co[3 * e + 1], co[3 * e + 2]
             dp = max(dp_ref, 1.0)
             g_e = orifice_flow(dp, rl, bl, r4) / dp if dp_ref else 2.0 / (
                 rl + math.sqrt(rl * rl + bl + r4 * dp))
-            g = max(g, g_e)
-        worst = max(worst, 2.0 * g)
+            worst = max(worst, 2.0 * g_e)
     return worst
 
 
