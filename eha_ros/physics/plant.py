@@ -242,10 +242,7 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
         raise ParameterError(f'controller_period_s = {period:g} s must be a whole multiple of '
                              f'dt_s = {dt_s:g} s')
     n_ticks = int(round(duration / period))
-    if record_dt_s is None:
-        rec_every = 1
-    else:
-        rec_every = max(1, int(round(record_dt_s / period)))
+    rec_every = 1 if record_dt_s is None else max(1, int(round(record_dt_s / period)))
     # the run in segments of constant parameters: tick -> (parameters, kernels) from it on
     if isinstance(events, EventSchedule):
         events = list(events)
@@ -265,8 +262,8 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     rec = np.full((n_rows, N_REC), np.nan)
     state = initial_state(p)
     ctrl = np.zeros(3)
-    noise = NoiseSource(p.noise_std_a, p.noise_sample_time_s, seed)
-    samples = noise.samples_until(n_ticks * steps_per_tick * dt_s)
+    samples = NoiseSource(p.noise_std_a, p.noise_sample_time_s, seed).samples_until(
+        n_ticks * steps_per_tick * dt_s)
     kind, args, com_t, com_v = sc.arrays()
     t0 = time.perf_counter()
     rows, i_cmd = 0, 0.0
