@@ -5,7 +5,7 @@ what a surrogate provides to be that kernel.
 Named ``loop`` for the time loop it holds (and the closed loop it may run): its arguments are
 grouped in named tuples (numba tuples): :class:`Clock` (which steps, of what length, under
 which noise), :class:`ClosedLoop` (controller, command and record; :data:`OPEN_LOOP` for the
-coil current held) and :class:`Kernel` (a surrogate's kernel and its data; ``None`` for the
+coil current held); a surrogate's kernel comes in the place of what it gives (``None`` for the
 high-fidelity block: a ``None`` argument removes its branches when the kernel is compiled).
 An open and a closed loop share one compiled kernel (per fluid block).
 """
@@ -27,7 +27,7 @@ from .state import (N_REC, S_FTM, S_ICOIL, S_P1, S_P1T, S_P2, S_P2T, S_QJ, S_SUR
                     S_XF, S_XJ, S_XS, STATE_NAMES)
 from .valve import chamber_step, net_flow, valve_coefficients, valve_constants
 
-__all__ = ['Clock', 'ClosedLoop', 'OPEN_LOOP', 'Kernel', 'P12', 'CHAMBER_FLOWS', 'FluidBlock',
+__all__ = ['Clock', 'ClosedLoop', 'OPEN_LOOP', 'P12', 'CHAMBER_FLOWS', 'FluidBlock',
            'fluid_kernels', 'run', 'pid', 'record', 'SimulationDiverged', 'diverged']
 
 # state entries watched for divergence, in the order they are reported
@@ -57,8 +57,6 @@ ClosedLoop = namedtuple('ClosedLoop', 'ctrl kind args com_t com_v steps_per_tick
 #: The open loop: no controller ticks, nothing recorded (the arrays are never read).
 OPEN_LOOP = ClosedLoop(np.zeros(3), 0, np.zeros(8), np.zeros(0), np.zeros(0), 0, 1, 0,
                        np.zeros((0, N_REC)))
-#: A surrogate's numba kernel and the data it is called with.
-Kernel = namedtuple('Kernel', 'kernel data')
 
 
 #: ``kernel_output`` of an algebraic surrogate:
@@ -91,18 +89,21 @@ class FluidBlock(Protocol):
 
 
 def fluid_kernels(fluid: FluidBlock | None, p: PlantParams) -> tuple:
-    """``(p12_kernel, flows_kernel)`` of :func:`.loop.run` for ``fluid`` at the parameters
-    ``p``: ``(None, None)`` for the high-fidelity block (``fluid`` ``None``)."""
+    """``(p12_fn, flows_fn, data)`` of :func:`run` for ``fluid`` at the parameters ``p``: its
+    kernel in the place its ``kernel_output`` names (``None`` in the other) and the kernel's
+    data; ``(None, None, ())`` for the high-fidelity block (``fluid`` ``None``)."""
     if fluid is None:
-        return None, None
+        return None, None, ()
     if not isinstance(fluid, FluidBlock) or fluid.kernel_output not in (P12, CHAMBER_FLOWS):
         raise ParameterError(f'fluid must be a FluidBlock with kernel_output {P12!r} or '
                              f'{CHAMBER_FLOWS!r}')
     try:
-        kernel = Kernel(fluid.kernel, tuple(fluid.prepare(p)))
+        data = tuple(fluid.prepare(p))
     except ValueError as exc:  # a surrogate refusing these parameters
         raise ParameterError(str(exc)) from None
-    return (kernel, None) if fluid.kernel_output == P12 else (None, kernel)
+    if fluid.kernel_output == P12:
+        return fluid.kernel, None, data
+    return None, fluid.kernel, data
 
 
 @njit(cache=True, inline='always')
@@ -142,15 +143,17 @@ def _save(s, *values):
 
 
 @njit  # not cached on disk: see below
-def run(s, i_cmd, p, clock, loop, p12_kernel, flows_kernel):
+def run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
     """Advance the plant state ``s`` (in place) by ``clock.n_steps`` steps of ``clock.dt``.
 
-    Fluid block: the high-fidelity one when both kernels are ``None``.  ``p12_kernel`` (an
-    algebraic surrogate): the block is replaced by ``P12 = kernel(data, XS, QJ, overlap,
-    clearance)`` with the load flow imposed by the jack, ``QJ = AJ dXJ/dt``; P1, P2 are then
-    reported as mid-pressure +- P12/2.  ``flows_kernel`` (a dynamic surrogate): only the
-    metering-edge flows come from the surrogate, ``(Q1L, Q2L) = kernel(data, XS, P1, P2,
-    OSSV, ORSV)``; chambers, leakage, cavitation clip and jack stay the high-fidelity ones.
+    Fluid block (:func:`fluid_kernels`): the high-fidelity one when both kernels are
+    ``None``.  ``p12_fn`` (an algebraic surrogate): the block is replaced by ``P12 =
+    p12_fn(data, XS, QJ, overlap, clearance)`` with the load flow imposed by the jack, ``QJ =
+    AJ dXJ/dt``; P1, P2 are then reported as mid-pressure +- P12/2.  ``flows_fn`` (a dynamic
+    surrogate): only the metering-edge flows come from the surrogate, ``(Q1L, Q2L) =
+    flows_fn(data, XS, P1, P2, OSSV, ORSV)``; chambers, leakage, cavitation clip and jack stay
+    the high-fidelity ones.  (The kernels and their data are arguments of their own, not a
+    tuple's: numba types a tuple of arrays at a call much faster than a named tuple.)
 
     ``loop`` :data:`OPEN_LOOP`: the coil current command ``i_cmd`` is held.  Otherwise the
     controller runs every ``loop.steps_per_tick`` steps on the quantised sensor and the
@@ -166,9 +169,10 @@ def run(s, i_cmd, p, clock, loop, p12_kernel, flows_kernel):
     once that object is gone, breaks the saving of the cache index for every later entry.  The
     blocks it calls are cached; this function compiles in a few seconds per process.
     """
-    dt = clock.dt
-    n_steps = clock.n_steps
-    noise = clock.noise
+    # everything out of the tuples once, before the loop (an array taken from a tuple is
+    # reference-counted at each access)
+    n0, n_steps, dt, dt_ns, noise, noise_dt = clock
+    ctrl, kind, args, com_t, com_v, steps_per_tick, rec_every, rec_wait, rec = loop
     cf = flapper_damping(p)
     drive, c_eq = spool_gains(p)
     kvol = p.bulk_modulus_pa / p.chamber_volume_m3
@@ -183,28 +187,28 @@ def run(s, i_cmd, p, clock, loop, p12_kernel, flows_kernel):
     lap_r = p.overlap_return_m
     clr = p.radial_clearance_m
     pmid = 0.5 * (ps + pr)
-    steps_per_noise = dt / clock.noise_dt
+    steps_per_noise = dt / noise_dt
     y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q2l = s  # STATE_NAMES
     status = 0
     done = 0
     row = 0
-    period = loop.steps_per_tick * dt
-    inv_period = 1.0 / period if loop.steps_per_tick > 0 else 0.0
+    period = steps_per_tick * dt
+    inv_period = 1.0 / period if steps_per_tick > 0 else 0.0
     until_tick = 0
-    until_rec = loop.rec_wait
+    until_rec = rec_wait
     for j in range(n_steps):
-        n = clock.n0 + j
-        if loop.steps_per_tick > 0:
+        n = n0 + j
+        if steps_per_tick > 0:
             if until_tick == 0:
-                until_tick = loop.steps_per_tick
-                t = (n * clock.dt_ns) * 1e-9
-                r = command_value(loop.kind, loop.args, loop.com_t, loop.com_v, t)
-                i_cmd = pid(loop.ctrl, r - quantise(surf, q), period, inv_period, p)
+                until_tick = steps_per_tick
+                t = (n * dt_ns) * 1e-9
+                r = command_value(kind, args, com_t, com_v, t)
+                i_cmd = pid(ctrl, r - quantise(surf, q), period, inv_period, p)
                 if until_rec == 0:
-                    until_rec = loop.rec_every
+                    until_rec = rec_every
                     _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f,
                           q1l, q2l)
-                    record(loop.rec, row, t, r, i_cmd, s, p)
+                    record(rec, row, t, r, i_cmd, s, p)
                     row += 1
                 until_rec -= 1
             until_tick -= 1
@@ -214,16 +218,16 @@ def run(s, i_cmd, p, clock, loop, p12_kernel, flows_kernel):
         k = int(n * steps_per_noise)
         y, i = coil_current(y, i_cmd, noise[k], p)
         f = torque_motor_force(i, xf, p)
-        if p12_kernel is not None:
+        if p12_fn is not None:
             qj = aj * vj
             q1l = qj
             q2l = qj
-            p12 = p12_kernel.kernel(p12_kernel.data, xs, qj, lap, clr)
+            p12 = p12_fn(data, xs, qj, lap, clr)
             p1 = pmid + 0.5 * p12
             p2 = pmid - 0.5 * p12
         else:
-            if flows_kernel is not None:
-                q1l, q2l = flows_kernel.kernel(flows_kernel.data, xs, p1, p2, lap, lap_r)
+            if flows_fn is not None:
+                q1l, q2l = flows_fn(data, xs, p1, p2, lap, lap_r)
             else:
                 (rl1s, bl1s, r41s, rl1r, bl1r, r41r,
                  rl2s, bl2s, r42s, rl2r, bl2r, r42r) = valve_coefficients(xs, vc)
@@ -236,7 +240,7 @@ def run(s, i_cmd, p, clock, loop, p12_kernel, flows_kernel):
         xf, vf = flapper_step(xf, vf, xs_old, f, cf, p, dt)
         qm = aj * vj + clk * p12
         xj, vj = jack_step(xj, vj, p12, p, dt)
-        if p12_kernel is not None:
+        if p12_fn is not None:
             p1t = p1  # the surrogate's pressures at the start of this step
             p2t = p2
         else:
