@@ -68,9 +68,22 @@ def test_parameters_declared_with_descriptions_and_ranges(ros_env):
         assert not frozen.successful and 'cannot change' in frozen.reason
         ok = node.set_parameters([Parameter('radial_clearance_m', value=4e-6)])[0]
         assert ok.successful and node.plant.params.radial_clearance_m == 4e-6
+        # the valve test's default flows are those of the valve_test scenario (config)
+        from eha_ros.physics import get_scenario
+        assert (list(node.get_parameter('valve_test_flows_m3_s').value)
+                == list(get_scenario('valve_test').valve_test_flows_m3_s))
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+def test_plant_status_codes_name_the_physics_conditions():
+    from eha_ros.graph import STATUS_NAMES
+    from eha_ros.nodes.servovalve_plant import CONDITION_STATUS
+    from eha_ros.physics.state import CAVITATION, END_STOP, OK
+    assert set(CONDITION_STATUS) == {OK, END_STOP, CAVITATION}
+    for condition, code in CONDITION_STATUS.items():
+        assert STATUS_NAMES[code] == condition
 
 
 def _reference(duration_s, seed=0, **changes):

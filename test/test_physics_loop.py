@@ -13,9 +13,12 @@ import physics_reference as ref  # noqa: E402
 
 from eha_ros.physics import (Plant, SimulationDiverged, default_params, get_scenario,  # noqa
                              load_scenarios, simulate, stability_limit)
+from eha_ros.physics.loop import P12  # noqa: E402
 from eha_ros.physics.params import ParameterError, replace  # noqa: E402
-from eha_ros.physics.plant import (STATE_NAMES, PositionController, S_P1T,  # noqa: E402
-                                   initial_state, stability_limits)
+from eha_ros.physics.plant import PositionController  # noqa: E402
+from eha_ros.physics.stability import FLAPPER, stability_limits  # noqa: E402
+from eha_ros.physics.state import (CAVITATION, END_STOP, OK, S_P1, S_P1T, S_P2,  # noqa: E402
+                                   S_XJ, STATE_NAMES, initial_state, operating_condition)
 from eha_ros.physics.servovalve import flapper_damping, flapper_step, spool_gains  # noqa
 
 P = default_params()
@@ -142,14 +145,14 @@ def test_first_stage_stability_limit_is_real():
     """The first stage's bound is exact for its linear oscillator: at 0.9x it decays, at 1.1x
     it grows (until the stops); and steps beyond the plant's limit are refused."""
     p = replace(P, flapper_stroke_m=3e-4)
-    dt_lim = dict((b, d) for d, b in stability_limits(p))['first stage (flapper) oscillator']
+    dt_lim = {x.key: x.dt_s for x in stability_limits(p)}[FLAPPER]
     cf = flapper_damping(p)
     for fac, grows in ((0.9, False), (1.1, True)):
         xf, vf = 1e-8, 0.0
         for _ in range(2000):
             xf, vf = flapper_step(xf, vf, 0.0, 0.0, cf, p, fac * dt_lim)
         assert (abs(xf) > 1e-8) == grows
-    lim, _ = stability_limit(P)
+    lim = stability_limit(P).dt_s
     assert lim > 1e-6  # the 1 us default is inside
     with pytest.raises(ParameterError, match='dt_s = .* exceeds the stability limit'):
         simulate(P, 'step_0p1', dt_s=math.ceil(1.01 * lim * 1e9) * 1e-9)
@@ -179,9 +182,19 @@ def test_fluid_function_replaces_the_fluid_block():
         kq, kc = data[0][0], data[0][1]
         return (kq * xs - q) / kc
 
-    class Linear:
+    class Linear:  # a FluidBlock
+        name = 'linear'
         kernel = linear_valve
-        data = (np.array([0.9, 1e-11]),)
+        kernel_output = P12
+
+        def prepare(self, p):
+            return (np.array([0.9, 1e-11]),)
+
+        def stability_limit(self, p):
+            return math.inf, 'linear valve'
+
+        def check_params(self, p):
+            pass
 
     plant = Plant(P, fluid=Linear())
     plant.advance(5e-4, 999)
@@ -194,11 +207,33 @@ def test_fluid_function_replaces_the_fluid_block():
     assert_allclose(s1['p1_pa'] + s1['p2_pa'], 2 * mid, rtol=1e-12)
     r = simulate(P, 'step_0p1', fluid=Linear())
     assert abs(r['jack_position_m'][-1] - 1e-4) < _band(P)
-    with pytest.raises(ParameterError, match='kernel and data'):
-        simulate(P, 'step_0p1', duration_s=0.01, fluid=object())
+    for bad in (object(), type('Other', (Linear,), {'kernel_output': 'p1'})()):
+        with pytest.raises(ParameterError, match='must be a FluidBlock'):
+            simulate(P, 'step_0p1', duration_s=0.01, fluid=bad)
 
 
 def test_state_names_cover_the_state():
     assert len(STATE_NAMES) == initial_state(P).size
     s = initial_state(P)
     assert_allclose(s[7], s[8], rtol=1e-9)  # symmetric valve at null: P1 = P2
+
+
+def test_operating_condition_of_the_state():
+    """Closed forms: the jack at either end of its stroke is END_STOP (whatever the
+    pressures); a chamber clipped at the vapour pressure is CAVITATION; the rest state and the
+    jack one ulp inside its stroke are OK."""
+    s = initial_state(P)
+    assert P.vapour_pressure_pa < min(s[S_P1], s[S_P2]) and operating_condition(s, P) == OK
+    for xj in (P.jack_stroke_m, -P.jack_stroke_m):
+        e = s.copy()
+        e[S_XJ] = xj
+        assert operating_condition(e, P) == END_STOP
+        e[S_P1] = P.vapour_pressure_pa
+        assert operating_condition(e, P) == END_STOP
+        e = s.copy()
+        e[S_XJ] = np.nextafter(xj, 0.0)
+        assert operating_condition(e, P) == OK
+    for k in (S_P1, S_P2):
+        c = s.copy()
+        c[k] = P.vapour_pressure_pa
+        assert operating_condition(c, P) == CAVITATION

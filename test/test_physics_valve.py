@@ -206,3 +206,18 @@ def test_spool_grid_is_denser_near_null():
     d = np.diff(x)
     assert np.all(d > 0)
     assert d[66] * 10 < d[0]
+
+
+def test_fluid_constants_are_the_one_derivation_of_the_edge_constants():
+    """Cd_eff = Cd (1 - Khsv), mu = rho nu, the Reynolds flag from cd_model; the valve's
+    constants and the maps' are built from them (exact: the same products)."""
+    from eha_ros.physics.maps import _consts
+    from eha_ros.physics.valve import edge_constants, fluid_constants
+    for p in (replace(P, valve_degradation=0.3), P_CONST):
+        fc = fluid_constants(p)
+        assert fc.cd_eff == p.discharge_coefficient * (1.0 - p.valve_degradation)
+        assert fc.mu_pa_s == p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s
+        assert fc.reynolds == (p is not P_CONST)
+        assert valve_constants(p) == edge_constants(p.radial_clearance_m, p.overlap_supply_m,
+                                                    p.overlap_return_m, *fc)
+        assert list(_consts(p)[5:]) == [float(v) for v in fc]

@@ -9,7 +9,8 @@ from eha_ros.graph import DYNAMIC_MODELS, MODELS
 from eha_ros.physics import default_params, simulate
 from eha_ros.physics.maps import WEAR_RANGES, spool_grid
 from eha_ros.physics.params import ParameterError, replace
-from eha_ros.physics.plant import Plant, check_dt, stability_limits
+from eha_ros.physics.plant import Plant
+from eha_ros.physics.stability import CHAMBER, FLUID, check_dt, stability_limits
 from eha_ros.physics.valve import valve_flows
 from eha_ros.surrogates.base import SurrogateError, relative_error
 from eha_ros.surrogates.registry import load_surrogate
@@ -165,8 +166,8 @@ def test_outside_the_range_is_refused(dyn):
 
 def test_time_step_bound_comes_from_what_the_surrogate_feeds_back(dyn):
     lim, block = dyn.stability_limit(P)
-    hf = dict((b, d) for d, b in stability_limits(P))
-    hf_chamber = hf['chamber pressures (Bet/Vol x valve conductance)']
+    hf = {x.key: x.dt_s for x in stability_limits(P)}
+    hf_chamber = hf[CHAMBER]
     # the surrogate's conductance is the valve's: the same order as hf's (conservative) bound
     assert 0.5 * hf_chamber < lim < 4 * hf_chamber and dyn.name in block
     below, above = (round(f * lim, 9) for f in (0.9, 1.1))  # whole nanoseconds
@@ -182,8 +183,8 @@ def test_algebraic_surrogate_bound_is_its_pressure_flow_slope():
     # AJ^2 |dP12/dQ| as a damper on the jack: dt < 2 MJ / (AJ^2 slope)
     slope = float(block.split('up to ')[1].split(' ')[0])
     assert lim == pytest.approx(2 * P.jack_mass_kg / (P.jack_area_m2 ** 2 * slope), rel=1e-3)
-    names = [b for _, b in stability_limits(P, s)]
-    assert not any(b.startswith('chamber') for b in names)
+    keys = [x.key for x in stability_limits(P, s)]
+    assert CHAMBER not in keys and keys[-1] == FLUID
 
 
 def test_dynamic_lut_follows_hf_in_the_loop():

@@ -389,11 +389,11 @@ def test_kernels_passed_as_arguments_never_reach_the_disk_cache(tmp_path):
     shipped surrogate and a kernel of their own: every one succeeds (a numba function typed
     by its object in a disk-cache key breaks the cache for later processes), and the loop
     that takes the kernel as an argument leaves no cache entry."""
-    import eha_ros.physics.plant as plant
+    import eha_ros.physics.loop as loop
     for _ in range(2):
         out = subprocess.run([sys.executable, '-c', _FRESH_PROCESS], capture_output=True,
                              text=True, cwd=tmp_path, timeout=300)
         assert out.returncode == 0, out.stderr[-2000:]
         assert out.stdout.strip() == '1.0'
-    cache = Path(plant.__file__).parent / '__pycache__'
-    assert not list(cache.glob('plant._run-*'))
+    cache = Path(loop.__file__).parent / '__pycache__'
+    assert not list(cache.glob('loop.run-*'))

@@ -53,10 +53,12 @@ from rosgraph_msgs.msg import Clock
 
 from eha_ros.graph import MODELS
 from eha_ros.msg import ActuatorState, ServovalveCommand
-from eha_ros.physics import ParameterError, Plant, SimulationDiverged, load_params
+from eha_ros.physics import (ParameterError, Plant, SimulationDiverged, get_scenario,
+                             load_params)
 from eha_ros.physics.events import EventSchedule, parse_event, PLANT_RUNTIME
 from eha_ros.physics.params import replace
-from eha_ros.physics.plant import S_P1, S_P2, S_XJ
+from eha_ros.physics.state import (CAVITATION, END_STOP, initial_state, OK,
+                                   operating_condition)
 from eha_ros.physics.maintenance import PreflightCheck, ValveTest
 
 from .common import (advertise, apply_realtime_settings, begin_timing, declare,
@@ -65,11 +67,9 @@ from .common import (advertise, apply_realtime_settings, begin_timing, declare,
                      TOPIC_SERVOVALVE, TOPIC_STATE, validator)
 from .handshake import StartCoordinator
 
-#: Flows [m^3/s] of the valve test by default: three of the diagnostic grid (DB4).
-DEFAULT_TEST_FLOWS_M3_S = (2.5714285714285714e-05, 4.285714285714286e-05, 6.0e-05)
-
-#: Parameters that may change during a run (progressive degradation, injected faults).
-WEAR = PLANT_RUNTIME
+#: The status of each operating condition (:func:`eha_ros.physics.state.operating_condition`).
+CONDITION_STATUS = {OK: ActuatorState.STATUS_OK, END_STOP: ActuatorState.STATUS_END_STOP,
+                    CAVITATION: ActuatorState.STATUS_CAVITATION}
 
 #: The nodes the plant waits for by default (the loop); the harness names every node it runs.
 DEFAULT_HANDSHAKE_NODES = ('command_generator', 'controller')
@@ -94,7 +94,7 @@ class ServovalvePlant(Node):
         path = declare(self, 'params_file', '', 'physical parameter YAML (empty: the installed '
                        'config/eha_params.yaml)')
         base = load_params(path or None)
-        declare_physics(self, base, WEAR)
+        declare_physics(self, base, PLANT_RUNTIME)
         self.model = declare(self, 'model', 'hf', 'fluid-dynamic block', choices=MODELS)
         dt_s = declare(self, 'dt_s', 1e-6, 'plant integration step [s]', 1e-9, 1e-3)
         rate = declare(self, 'rate_hz', 1000.0, 'tick rate [Hz]', 1.0, 1e5)
@@ -119,7 +119,8 @@ class ServovalvePlant(Node):
         realtime = declare_realtime(self)
         valve_test = declare(self, 'valve_test', False, 'run the diagnostic valve test (map '
                              'sweep, jack clamped) before operating')
-        flows = declare(self, 'valve_test_flows_m3_s', list(DEFAULT_TEST_FLOWS_M3_S),
+        flows = declare(self, 'valve_test_flows_m3_s',  # those of the valve_test scenario
+                        list(get_scenario('valve_test').valve_test_flows_m3_s),
                         'valve test: imposed load flows [m^3/s], one P12 curve each')
         preflight = declare(self, 'preflight_check', False, 'run the pre-flight check (open-'
                             'loop current steps and sines, jack free) before operating')
@@ -127,7 +128,7 @@ class ServovalvePlant(Node):
                                     'caught up at once; a longer stall slips', 1, 100000)
         if self.mode not in MODES:
             raise ParameterError(f'mode {self.mode!r} must be one of {", ".join(MODES)}')
-        params = replace(base, **{n: self.get_parameter(n).value for n in WEAR})
+        params = replace(base, **{n: self.get_parameter(n).value for n in PLANT_RUNTIME})
         self.fluid = load_fluid(self.model, params)
         self.plant = Plant(params, dt_s=dt_s, seed=seed, fluid=self.fluid)
         Plant(params, dt_s=dt_s, seed=seed, fluid=self.fluid).advance(0.0, 1)  # JIT first
@@ -137,7 +138,7 @@ class ServovalvePlant(Node):
                                  f'dt_s = {dt_s:g} s')
         self.period_ns = period_ns
         self.schedule = EventSchedule([parse_event(e) for e in events if e.strip()],
-                                      allowed=WEAR, period_ns=period_ns)
+                                      allowed=PLANT_RUNTIME, period_ns=period_ns)
         self.schedule.validate(params)
         for ev in self.schedule:
             if self.fluid is not None:
@@ -193,7 +194,7 @@ class ServovalvePlant(Node):
                   'cpu_affinity', 'lock_memory'} & set(changes)
         if frozen:
             raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
-        wear = {k: v for k, v in changes.items() if k in WEAR}
+        wear = {k: v for k, v in changes.items() if k in PLANT_RUNTIME}
         if wear and not self.events.applying:
             params = replace(self.plant.params, **wear)  # raises with the reason if bad
             if self.fluid is not None:
@@ -229,7 +230,7 @@ class ServovalvePlant(Node):
                 self.plant.hold(self.steps_per_tick)
             elif self.preflight is not None and self.preflight_tick < self.preflight.n_ticks:
                 if self.preflight_tick == 0:  # from the actuator at rest
-                    self.plant.state[:] = self._rest_state()
+                    self.plant.state[:] = initial_state(self.plant.params)
                 self.test_sample = None
                 self.plant.advance(float(self.preflight.command_a[self.preflight_tick]),
                                    self.steps_per_tick)
@@ -247,10 +248,6 @@ class ServovalvePlant(Node):
             self.done = True
             self.get_logger().info(f'scenario complete at t = {self.plant.time_s:.6g} s')
         return True
-
-    def _rest_state(self):
-        from eha_ros.physics.plant import initial_state
-        return initial_state(self.plant.params)
 
     def _state_msg(self) -> ActuatorState:
         """The tick's state. One message object is filled every tick (publishing serializes
@@ -278,7 +275,6 @@ class ServovalvePlant(Node):
         msg.torque_motor_force_n = s['torque_motor_force_n']
         msg.sim_time_s = self.plant.time_s
         msg.tick = self.plant.steps
-        st = self.plant.state
         t = self.test_sample
         if t is not None:
             msg.spool_position_m = t.spool_position_m
@@ -300,12 +296,8 @@ class ServovalvePlant(Node):
             msg.status = ActuatorState.STATUS_VALVE_TEST
         elif preflight:
             msg.status = ActuatorState.STATUS_PREFLIGHT
-        elif abs(st[S_XJ]) >= p.jack_stroke_m:
-            msg.status = ActuatorState.STATUS_END_STOP
-        elif min(st[S_P1], st[S_P2]) <= p.vapour_pressure_pa:
-            msg.status = ActuatorState.STATUS_CAVITATION
         else:
-            msg.status = ActuatorState.STATUS_OK
+            msg.status = CONDITION_STATUS[operating_condition(self.plant.state, p)]
         return msg
 
     def _publish_tick(self):

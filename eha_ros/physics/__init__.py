@@ -2,19 +2,23 @@
 
 Blocks: :mod:`.commands`, :mod:`.servovalve` (torque motor, first and second stage),
 :mod:`.friction` (Borello), :mod:`.valve` (fluid-dynamic block), :mod:`.jack`; the closed loop
-and the steppable plant in :mod:`.plant`; characteristic maps in :mod:`.maps`; parameters in
-:mod:`.params`; parameter changes during a run in :mod:`.events`.  Nothing here imports
-rclpy or torch.
+and the steppable plant in :mod:`.plant`, built on :mod:`.state` (state layout), :mod:`.loop`
+(the kernel, and the :class:`FluidBlock` a surrogate provides) and :mod:`.stability`;
+characteristic maps in :mod:`.maps`; parameters in :mod:`.params`; parameter changes during a
+run in :mod:`.events`.  Nothing here imports rclpy or torch.
 """
 
 from .commands import Scenario, get_scenario, load_scenarios
 from .events import (CONTROLLER_RUNTIME, PLANT_RUNTIME, Event, EventSchedule, format_event,
                      parse_event)
+from .loop import CHAMBER_FLOWS, P12, FluidBlock, SimulationDiverged
 from .params import (ParameterError, PlantParams, default_params, load_params, params_hash,
                      params_to_dict)
-from .plant import Plant, SimResult, SimulationDiverged, simulate, stability_limit
+from .plant import Plant, SimResult, simulate
+from .stability import stability_limit
 
 __all__ = ['Scenario', 'get_scenario', 'load_scenarios', 'ParameterError', 'PlantParams',
            'default_params', 'load_params', 'params_hash', 'params_to_dict', 'Plant',
            'SimResult', 'SimulationDiverged', 'simulate', 'stability_limit', 'PLANT_RUNTIME',
-           'CONTROLLER_RUNTIME', 'Event', 'EventSchedule', 'parse_event', 'format_event']
+           'CONTROLLER_RUNTIME', 'Event', 'EventSchedule', 'parse_event', 'format_event',
+           'FluidBlock', 'P12', 'CHAMBER_FLOWS']

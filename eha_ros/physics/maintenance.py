@@ -24,8 +24,8 @@ from .maps import spool_grid, transient_map
 from .params import ParameterError, PlantParams
 
 __all__ = ['MAP_POINTS', 'MAP_HOLD_S', 'ValveTest', 'ValveTestSample', 'PREFLIGHT_PROFILE',
-           'PREFLIGHT_S', 'PREFLIGHT_TICK_S', 'PREFLIGHT_SIGNALS', 'PreflightCheck', 'preflight_command',
-           'run_preflight']
+           'PREFLIGHT_S', 'PREFLIGHT_TICK_S', 'PREFLIGHT_SIGNALS', 'PreflightCheck',
+           'preflight_command', 'run_preflight']
 
 #: Spool positions of a curve (the databases' grid).
 MAP_POINTS = 133

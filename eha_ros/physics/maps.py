@@ -25,10 +25,11 @@ import numpy as np
 from numba import njit, prange
 
 from .params import PlantParams, default_params, params_hash, replace
-from .valve import edge_constants, net_flow, steady_pressures, valve_coefficients
+from .valve import (edge_constants, fluid_constants, net_flow, steady_pressures,
+                    valve_coefficients)
 
-__all__ = ['WEAR_RANGES', 'FLUID_PARAMETERS', 'FLOW_MAX_M3_S', 'fluid_hash', 'spool_grid', 'transient_map', 'steady_map', 'MapResult',
-           'settling_mask']
+__all__ = ['WEAR_RANGES', 'FLUID_PARAMETERS', 'FLOW_MAX_M3_S', 'fluid_hash', 'spool_grid',
+           'transient_map', 'steady_map', 'MapResult', 'settling_mask']
 
 _BLOCK = 64
 
@@ -74,9 +75,7 @@ def spool_grid(n: int = 133, stroke_m: float | None = None, density: float = 4.0
 def _transient_kernel(xs, q, lap_s, lap_r, clr, consts, n_steps, dt, out_p1, out_p2):
     """Integrate every point from zero pressure for ``n_steps`` steps, with the valve's own
     edge equations (:mod:`.valve`)."""
-    (ps, pr, pvap, kvol, clk, mu, rho, w, cd, ecc, lc, reynolds) = (
-        consts[0], consts[1], consts[2], consts[3], consts[4], consts[5], consts[6],
-        consts[7], consts[8], consts[9], consts[10], consts[11])
+    ps, pr, pvap, kvol, clk, w, cd, mu, rho, ecc, lc, reynolds = consts
     n = xs.size
     n_blocks = (n + _BLOCK - 1) // _BLOCK
     for b in prange(n_blocks):
@@ -112,12 +111,9 @@ def _transient_kernel(xs, q, lap_s, lap_r, clr, consts, n_steps, dt, out_p1, out
 
 
 def _consts(p: PlantParams) -> np.ndarray:
-    return np.array([
-        p.supply_pressure_pa, p.return_pressure_pa, p.vapour_pressure_pa,
-        p.bulk_modulus_pa / p.map_volume_m3, p.leakage_coeff_m3_s_pa,
-        p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s, p.fluid_density_kg_m3,
-        p.port_width_m, p.discharge_coefficient * (1.0 - p.valve_degradation),
-        p.eccentricity_ratio, p.critical_flow_number, 1.0 if p.cd_model == 0.0 else 0.0])
+    return np.array([p.supply_pressure_pa, p.return_pressure_pa, p.vapour_pressure_pa,
+                     p.bulk_modulus_pa / p.map_volume_m3, p.leakage_coeff_m3_s_pa,
+                     *fluid_constants(p)], dtype=float)
 
 
 class MapResult(dict):

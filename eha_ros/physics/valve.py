@@ -33,15 +33,33 @@ Chambers.  ``dP1T/dt = (Q1L - QM) Bet/Vol``, ``dP2T/dt = (QM - Q2L) Bet/Vol`` wi
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 from numba import njit
 
-__all__ = ['edge_constants', 'valve_constants', 'net_flow', 'edge_coefficients', 'orifice_flow',
-           'valve_coefficients', 'valve_flows', 'chamber_step', 'orifice_pressure_drop',
-           'steady_pressures']
+__all__ = ['FluidConstants', 'fluid_constants', 'edge_constants', 'valve_constants', 'net_flow',
+           'edge_coefficients', 'orifice_flow', 'valve_coefficients', 'valve_flows',
+           'chamber_step', 'orifice_pressure_drop', 'steady_pressures']
 
 _TINY = 1e-300
+
+
+#: The wear-independent constants of the metering edges, as :func:`edge_constants` takes them
+#: after the clearance and laps: ``cd_eff = Cd_inf (1 - Khsv)``, ``mu_pa_s = rho nu``,
+#: ``reynolds`` the Reynolds-dependent Cd (``cd_model``).
+FluidConstants = namedtuple('FluidConstants', 'port_width_m cd_eff mu_pa_s rho_kg_m3 '
+                            'eccentricity critical_flow_number reynolds')
+
+
+@njit(cache=True, inline='always')
+def fluid_constants(p):
+    """:class:`FluidConstants` of the parameters ``p``: their one derivation, for every
+    caller of :func:`edge_constants`."""
+    return FluidConstants(p.port_width_m, p.discharge_coefficient * (1.0 - p.valve_degradation),
+                          p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s,
+                          p.fluid_density_kg_m3, p.eccentricity_ratio, p.critical_flow_number,
+                          p.cd_model == 0.0)
 
 
 @njit(cache=True, inline='always')
@@ -66,11 +84,9 @@ def edge_constants(clearance_m, lap_supply_m, lap_return_m, port_width_m, cd_eff
 def valve_constants(p):
     """Spool-independent constants of the metering edges (:func:`edge_constants` at the
     parameters' clearance and laps), computed once per run."""
-    return edge_constants(p.radial_clearance_m, p.overlap_supply_m, p.overlap_return_m,
-                          p.port_width_m, p.discharge_coefficient * (1.0 - p.valve_degradation),
-                          p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s,
-                          p.fluid_density_kg_m3, p.eccentricity_ratio, p.critical_flow_number,
-                          p.cd_model == 0.0)
+    w, cd, mu, rho, ecc, lc, reynolds = fluid_constants(p)
+    return edge_constants(p.radial_clearance_m, p.overlap_supply_m, p.overlap_return_m, w, cd,
+                          mu, rho, ecc, lc, reynolds)
 
 
 @njit(cache=True, inline='always')
@@ -157,31 +173,15 @@ def chamber_step(p1t, p2t, q1l, q2l, qm, stiffness_pa_m3, pvap_pa, dt):
 # --- steady state -------------------------------------------------------------------------------
 
 @njit(cache=True)
-def _chamber1_pressure(xs, qm, p, lo, hi):
-    """P1 with Q1L(P1) = qm (Q1L decreases with P1), clipped at PVap."""
-    f_lo = valve_flows(xs, lo, lo, p)[0] - qm
-    if f_lo <= 0.0:
+def _chamber_pressure(k, xs, qm, p, lo, hi):
+    """P1 (``k = 0``) with Q1L(P1) = qm (Q1L decreases with P1) or P2 (``k = 1``) with
+    Q2L(P2) = qm (Q2L increases with P2), clipped at PVap."""
+    sgn = 1.0 if k == 0 else -1.0
+    if sgn * (valve_flows(xs, lo, lo, p)[k] - qm) <= 0.0:
         return lo
     for _ in range(200):
         mid = 0.5 * (lo + hi)
-        if valve_flows(xs, mid, mid, p)[0] - qm > 0.0:
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo <= 1e-12 * max(1.0, abs(mid)):
-            break
-    return 0.5 * (lo + hi)
-
-
-@njit(cache=True)
-def _chamber2_pressure(xs, qm, p, lo, hi):
-    """P2 with Q2L(P2) = qm (Q2L increases with P2), clipped at PVap."""
-    f_lo = valve_flows(xs, lo, lo, p)[1] - qm
-    if f_lo >= 0.0:
-        return lo
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if valve_flows(xs, mid, mid, p)[1] - qm < 0.0:
+        if sgn * (valve_flows(xs, mid, mid, p)[k] - qm) > 0.0:
             lo = mid
         else:
             hi = mid
@@ -211,8 +211,8 @@ def steady_pressures(xs_m, q_m3_s, p, p_max_pa):
     p2 = lo_p
     for _ in range(200):
         qm = 0.5 * (qa + qb)
-        p1 = _chamber1_pressure(xs_m, qm, p, lo_p, p_max_pa)
-        p2 = _chamber2_pressure(xs_m, qm, p, lo_p, p_max_pa)
+        p1 = _chamber_pressure(0, xs_m, qm, p, lo_p, p_max_pa)
+        p2 = _chamber_pressure(1, xs_m, qm, p, lo_p, p_max_pa)
         r = qm - q_m3_s - clk * (p1 - p2)
         if r > 0.0:
             qb = qm

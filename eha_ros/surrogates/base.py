@@ -23,6 +23,7 @@ from numba import njit
 
 from eha_ros.artefacts import ArtefactError, check_hash
 from eha_ros.physics import PlantParams
+from eha_ros.physics.loop import P12
 from eha_ros.physics.maps import fluid_hash, spool_grid
 
 __all__ = ['FluidSurrogate', 'SurrogateError', 'relative_error']
@@ -32,7 +33,7 @@ class SurrogateError(ArtefactError):
     """A surrogate artefact is missing, corrupt, or was built for other physics parameters."""
 
 
-@njit  # not cached: a kernel argument's type names the kernel object (see physics.plant)
+@njit  # not cached: a kernel argument's type names the kernel object (see physics.loop.run)
 def _vectorise(kernel, data, xs, q, lap, clr, out):
     for i in range(xs.size):
         out[i] = kernel(data, xs[i], q[i], lap[i], clr[i])
@@ -50,7 +51,7 @@ class FluidSurrogate:
     rebuild: str = 'eha_ros.training'
 
     #: what the kernel gives: P12 (the reference's surrogates; :mod:`.dynamic`'s give flows)
-    kernel_output = 'p12'
+    kernel_output = P12
 
     def prepare(self, p: PlantParams) -> tuple:
         """The kernel's data for the parameters ``p`` (the artefact's arrays: an algebraic

@@ -32,7 +32,7 @@ Validity (stored in each artefact's ``meta['valid_range']``)
     pressures, volumes or leakage, which stay physical); an artefact built for others is
     refused.
 
-Kernel interface (the plant's ``_run``, mode 2)
+Kernel interface (:func:`eha_ros.physics.loop.run`, ``kernel_output`` CHAMBER_FLOWS)
     ``kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m) -> (Q1L, Q2L)`` [m^3/s]:
     the net flow into chamber 1 (edges 1S at ``xs - lap_supply``, 1R at ``-xs - lap_return``)
     and out of chamber 2 (2R at ``xs - lap_return``, 2S at ``-xs - lap_supply``), as
@@ -108,7 +108,9 @@ from eha_ros.artefacts import check_hash
 from eha_ros.mlp import mlp_forward, split_weights
 from eha_ros.physics import PlantParams, default_params, params_hash
 from eha_ros.physics.maps import WEAR_RANGES, spool_grid
-from eha_ros.physics.valve import edge_coefficients, edge_constants, orifice_flow, valve_flows
+from eha_ros.physics.loop import CHAMBER_FLOWS
+from eha_ros.physics.valve import (edge_coefficients, edge_constants, fluid_constants,
+                                   orifice_flow, valve_flows)
 from eha_ros.surrogates.base import FluidSurrogate, SurrogateError
 
 __all__ = ['EDGE_PARAMETERS', 'edge_hash', 'DP_MAX_PA', 'edge_flows', 'edge_conductance',
@@ -132,13 +134,6 @@ def edge_hash(p: PlantParams) -> str:
     return params_hash(p, EDGE_PARAMETERS)
 
 
-def _edge_args(p: PlantParams):
-    """The fluid constants :func:`eha_ros.physics.valve.edge_constants` takes after the wear."""
-    return (p.port_width_m, p.discharge_coefficient * (1.0 - p.valve_degradation),
-            p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s, p.fluid_density_kg_m3,
-            p.eccentricity_ratio, p.critical_flow_number, p.cd_model == 0.0)
-
-
 @njit(cache=True)
 def _edge_flows(s, dp, c, w, cd, mu, rho, ecc, lc, reynolds, out):
     for i in range(s.size):
@@ -154,7 +149,7 @@ def edge_flows(s_m, dp_pa, clearance_m, params: PlantParams | None = None) -> np
     arrs = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (s_m, dp_pa, clearance_m)))
     flat = [np.ascontiguousarray(a.ravel()) for a in arrs]
     out = np.empty(flat[0].size)
-    _edge_flows(*flat, *_edge_args(p), out)
+    _edge_flows(*flat, *fluid_constants(p), out)
     return out.reshape(arrs[0].shape)
 
 
@@ -600,7 +595,7 @@ def dga_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
     return q1l, q2l
 
 
-@njit  # not cached: a kernel argument's type names the kernel object (see physics.plant)
+@njit  # not cached: a kernel argument's type names the kernel object (see physics.loop.run)
 def _chamber_loop(kernel, data, xs, p1, p2, lap_s, lap_r, out1, out2):
     for i in range(xs.size):
         out1[i], out2[i] = kernel(data, xs[i], p1[i], p2[i], lap_s[i], lap_r[i])
@@ -666,7 +661,7 @@ class DynamicSurrogate(FluidSurrogate):
     """A dynamic surrogate: the kernel gives chamber flows (module docstring); ``data`` holds
     the artefact's arrays, :meth:`prepare` the kernel's data for given parameters."""
 
-    kernel_output = 'chamber_flows'
+    kernel_output = CHAMBER_FLOWS
 
     def check_params(self, p: PlantParams) -> None:
         check_hash(self.meta, 'edge_hash', edge_hash(p), f'surrogate {self.name}',

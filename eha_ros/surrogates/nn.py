@@ -196,7 +196,7 @@ def mlp_numpy(data, xs_m, q_m3_s, overlap_m=0.0, clearance_m=0.0):
     return out.reshape(arrs[0].shape)
 
 
-@njit  # not cached: a kernel argument's type names the kernel object (see physics.plant)
+@njit  # not cached: a kernel argument's type names the kernel object (see physics.loop.run)
 def _kernel_loop(kernel, data, xs, q, lap, clr):
     """Sum of ``kernel`` over the points, called as the plant calls it (used for timing)."""
     s = 0.0

@@ -215,12 +215,8 @@ def build_dlut(params: PlantParams | None = None, grid: dict | None = None):
 
 def _hf_coefficients(p: PlantParams):
     """The hf model's values of the closed form's genes (for the record, never a start)."""
-    from eha_ros.physics.valve import edge_constants
-    vc = edge_constants(1.0, 0.0, 0.0, p.port_width_m,
-                        p.discharge_coefficient * (1.0 - p.valve_degradation),
-                        p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s,
-                        p.fluid_density_kg_m3, p.eccentricity_ratio, p.critical_flow_number,
-                        p.cd_model == 0.0)
+    from eha_ros.physics.valve import edge_constants, fluid_constants
+    vc = edge_constants(1.0, 0.0, 0.0, *fluid_constants(p))
     return np.array([vc[1], 3.0, vc[2], vc[3]])
 
 
@@ -234,8 +230,8 @@ def _scales(p: PlantParams):
     """Order-of-magnitude scales of the coefficients from textbook values (laminar slit
     ``12 mu / w``, orifice ``2 rho / (0.6^2 w^2)``, ``mu^2 100^2 / (16 0.6^2 w^2)``): the GA
     searches decades around them, so it is told units, not answers."""
-    w = p.port_width_m
-    mu = p.fluid_density_kg_m3 * p.fluid_kinematic_viscosity_m2_s
+    from eha_ros.physics.valve import fluid_constants
+    w, mu = p.port_width_m, fluid_constants(p).mu_pa_s
     return np.array([12.0 * mu / w, 1.0, 2.0 * p.fluid_density_kg_m3 / (0.36 * w * w),
                      mu * mu * 1e4 / (16.0 * 0.36 * w * w)])
 

@@ -1,0 +1,260 @@
+"""The plant's fixed-step kernel: ``run`` advances the state by a number of steps, open or
+closed loop, with the high-fidelity fluid block or a surrogate's kernel; :class:`FluidBlock`,
+what a surrogate provides to be that kernel.
+
+Named ``loop`` for the time loop it holds (and the closed loop it may run): its arguments are
+grouped in named tuples (numba tuples): :class:`Clock` (which steps, of what length, under
+which noise), :class:`ClosedLoop` (controller, command and record; :data:`OPEN_LOOP` for the
+coil current held); a surrogate's kernel comes in the place of what it gives (``None`` for the
+high-fidelity block: a ``None`` argument removes its branches when the kernel is compiled).
+An open and a closed loop share one compiled kernel (per fluid block).
+"""
+
+from __future__ import annotations
+
+from collections import namedtuple
+from typing import Callable, Protocol, runtime_checkable
+
+import numpy as np
+from numba import njit
+
+from .commands import command_value
+from .jack import jack_step, quantise, surface_position
+from .params import ParameterError, PlantParams
+from .servovalve import (coil_current, flapper_damping, flapper_step, spool_gains, spool_step,
+                         torque_motor_force)
+from .state import (N_REC, S_FTM, S_ICOIL, S_P1, S_P1T, S_P2, S_P2T, S_QJ, S_SURF, S_VF, S_VJ,
+                    S_XF, S_XJ, S_XS, STATE_NAMES)
+from .valve import chamber_step, net_flow, valve_coefficients, valve_constants
+
+__all__ = ['Clock', 'ClosedLoop', 'OPEN_LOOP', 'P12', 'CHAMBER_FLOWS', 'FluidBlock',
+           'fluid_kernels', 'run', 'pid', 'record', 'SimulationDiverged', 'diverged']
+
+# state entries watched for divergence, in the order they are reported
+_WATCHED = (S_XF, S_VF, S_XS, S_P1T, S_P2T, S_XJ, S_VJ)
+_DIVERGED_ABS = 1e12  # any watched state beyond this (in SI units) has diverged
+
+
+class SimulationDiverged(RuntimeError):
+    """A state became NaN, infinite or absurdly large."""
+
+
+def diverged(status: int, t_s: float) -> SimulationDiverged:
+    """The error for a non-zero ``status`` of :func:`run` at time ``t_s``."""
+    name = STATE_NAMES[_WATCHED[status - 1]]
+    return SimulationDiverged(f'simulation diverged: state {name} became non-finite or '
+                              f'exceeded {_DIVERGED_ABS:g} at t = {t_s:.6g} s')
+
+
+#: ``n_steps`` steps from the global step ``n0``, of ``dt`` s (``dt_ns`` whole ns), under the
+#: noise samples ``noise[k]`` (:class:`.plant.NoiseSource`), each over ``[k, k+1) noise_dt``.
+Clock = namedtuple('Clock', 'n0 n_steps dt dt_ns noise noise_dt')
+#: The controller (state ``ctrl``, see :func:`pid`) every ``steps_per_tick`` steps against the
+#: command ``(kind, args, com_t, com_v)``; every ``rec_every``-th tick, the first after
+#: ``rec_wait`` unrecorded ticks, recorded into ``rec`` from its row 0.
+ClosedLoop = namedtuple('ClosedLoop', 'ctrl kind args com_t com_v steps_per_tick rec_every '
+                        'rec_wait rec')
+#: The open loop: no controller ticks, nothing recorded (the arrays are never read).
+OPEN_LOOP = ClosedLoop(np.zeros(3), 0, np.zeros(8), np.zeros(0), np.zeros(0), 0, 1, 0,
+                       np.zeros((0, N_REC)))
+
+
+#: ``kernel_output`` of an algebraic surrogate:
+#: ``kernel(data, xs_m, q_m3_s, overlap_m, clearance_m) -> P12 [Pa]``.
+P12 = 'p12'
+#: ``kernel_output`` of a dynamic surrogate:
+#: ``kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m) -> (Q1L, Q2L) [m^3/s]``.
+CHAMBER_FLOWS = 'chamber_flows'
+
+
+@runtime_checkable
+class FluidBlock(Protocol):
+    """A surrogate of the fluid-dynamic block, as the plant calls it."""
+
+    name: str
+    #: the numba kernel, called inside the plant's loop (signature after ``kernel_output``)
+    kernel: Callable
+    #: :data:`P12` or :data:`CHAMBER_FLOWS`
+    kernel_output: str
+
+    def prepare(self, p: PlantParams) -> tuple:
+        """The kernel's data for the parameters ``p``; ValueError if it refuses them."""
+
+    def stability_limit(self, p: PlantParams) -> tuple[float, str]:
+        """``(dt_s, reason)``: the largest stable step under this block's feedback, in place
+        of the high-fidelity chamber bound."""
+
+    def check_params(self, p: PlantParams) -> None:
+        """Refuse parameters the block was not built for (ValueError)."""
+
+
+def fluid_kernels(fluid: FluidBlock | None, p: PlantParams) -> tuple:
+    """``(p12_fn, flows_fn, data)`` of :func:`run` for ``fluid`` at the parameters ``p``: its
+    kernel in the place its ``kernel_output`` names (``None`` in the other) and the kernel's
+    data; ``(None, None, ())`` for the high-fidelity block (``fluid`` ``None``)."""
+    if fluid is None:
+        return None, None, ()
+    if not isinstance(fluid, FluidBlock) or fluid.kernel_output not in (P12, CHAMBER_FLOWS):
+        raise ParameterError(f'fluid must be a FluidBlock with kernel_output {P12!r} or '
+                             f'{CHAMBER_FLOWS!r}')
+    try:
+        data = tuple(fluid.prepare(p))
+    except ValueError as exc:  # a surrogate refusing these parameters
+        raise ParameterError(str(exc)) from None
+    if fluid.kernel_output == P12:
+        return fluid.kernel, None, data
+    return None, fluid.kernel, data
+
+
+@njit(cache=True, inline='always')
+def pid(ctrl, error, period, inv_period, p):
+    """PID on the position error with conditional-integration anti-windup; ctrl is
+    [integral, previous error, has previous]."""
+    d = (error - ctrl[1]) * inv_period if ctrl[2] != 0.0 else 0.0
+    integ = ctrl[0] + error * period
+    u = p.kp_a_m * error + p.ki_a_m_s * integ + p.kd_a_s_m * d
+    lim = p.current_limit_a
+    if u > lim:
+        u = lim
+    elif u < -lim:
+        u = -lim
+    else:
+        ctrl[0] = integ
+    ctrl[1] = error
+    ctrl[2] = 1.0
+    return u
+
+
+@njit(cache=True)
+def record(rec, row, t, r, i_cmd, s, p):
+    """Row ``row`` of ``rec`` (:data:`.state.RECORD_FIELDS`) at time ``t``, command ``r``."""
+    values = (t, r, i_cmd, s[S_ICOIL], s[S_FTM], s[S_XF], s[S_XS], s[S_P1], s[S_P2],
+              s[S_P1] - s[S_P2], s[S_QJ], s[S_XJ], s[S_VJ], s[S_SURF],
+              quantise(s[S_SURF], p.sensor_resolution_m))
+    for k in range(len(values)):
+        rec[row, k] = values[k]
+
+
+@njit(cache=True)
+def _save(s, *values):
+    """``s[:] = values``, given in the order of :data:`.state.STATE_NAMES`."""
+    for k in range(len(values)):
+        s[k] = values[k]
+
+
+@njit  # not cached on disk: see below
+def run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
+    """Advance the plant state ``s`` (in place) by ``clock.n_steps`` steps of ``clock.dt``.
+
+    Fluid block (:func:`fluid_kernels`): the high-fidelity one when both kernels are
+    ``None``.  ``p12_fn`` (an algebraic surrogate): the block is replaced by ``P12 =
+    p12_fn(data, XS, QJ, overlap, clearance)`` with the load flow imposed by the jack, ``QJ =
+    AJ dXJ/dt``; P1, P2 are then reported as mid-pressure +- P12/2.  ``flows_fn`` (a dynamic
+    surrogate): only the metering-edge flows come from the surrogate, ``(Q1L, Q2L) =
+    flows_fn(data, XS, P1, P2, OSSV, ORSV)``; chambers, leakage, cavitation clip and jack stay
+    the high-fidelity ones.  (The kernels and their data are arguments of their own, not a
+    tuple's: numba types a tuple of arrays at a call much faster than a named tuple.)
+
+    ``loop`` :data:`OPEN_LOOP`: the coil current command ``i_cmd`` is held.  Otherwise the
+    controller runs every ``loop.steps_per_tick`` steps on the quantised sensor and the
+    ticks are recorded as :class:`ClosedLoop` says, each before the plant moves on.
+
+    The time of step ``n`` is ``(n dt_ns) 1e-9`` s, from the integer nanoseconds a ROS clock
+    carries, so the graph evaluates commands at the same times bit for bit.  Returns
+    ``(status, steps done, rows recorded, i_cmd)``: status 0, or 1 + the index into
+    ``_WATCHED`` of the first state that diverged.
+
+    Not cached on disk: a kernel (a numba function passed in an argument) is typed by its
+    object, not its code, so a cache entry keyed by it never matches in another process and,
+    once that object is gone, breaks the saving of the cache index for every later entry.  The
+    blocks it calls are cached; this function compiles in a few seconds per process.
+    """
+    # everything out of the tuples once, before the loop (an array taken from a tuple is
+    # reference-counted at each access)
+    n0, n_steps, dt, dt_ns, noise, noise_dt = clock
+    ctrl, kind, args, com_t, com_v, steps_per_tick, rec_every, rec_wait, rec = loop
+    cf = flapper_damping(p)
+    drive, c_eq = spool_gains(p)
+    kvol = p.bulk_modulus_pa / p.chamber_volume_m3
+    ps = p.supply_pressure_pa
+    pr = p.return_pressure_pa
+    pvap = p.vapour_pressure_pa
+    aj = p.jack_area_m2
+    clk = p.leakage_coeff_m3_s_pa
+    q = p.sensor_resolution_m
+    vc = valve_constants(p)
+    lap = p.overlap_supply_m
+    lap_r = p.overlap_return_m
+    clr = p.radial_clearance_m
+    pmid = 0.5 * (ps + pr)
+    steps_per_noise = dt / noise_dt
+    y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q2l = s  # STATE_NAMES
+    status = 0
+    done = 0
+    row = 0
+    period = steps_per_tick * dt
+    inv_period = 1.0 / period if steps_per_tick > 0 else 0.0
+    until_tick = 0
+    until_rec = rec_wait
+    for j in range(n_steps):
+        n = n0 + j
+        if steps_per_tick > 0:
+            if until_tick == 0:
+                until_tick = steps_per_tick
+                t = (n * dt_ns) * 1e-9
+                r = command_value(kind, args, com_t, com_v, t)
+                i_cmd = pid(ctrl, r - quantise(surf, q), period, inv_period, p)
+                if until_rec == 0:
+                    until_rec = rec_every
+                    _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f,
+                          q1l, q2l)
+                    record(rec, row, t, r, i_cmd, s, p)
+                    row += 1
+                until_rec -= 1
+            until_tick -= 1
+        # every derivative from the state at the start of the step (forward Euler, as a
+        # fixed-step ode1 solver evaluates a block diagram); the blocks are then independent
+        # within a step, which lets the processor overlap them
+        k = int(n * steps_per_noise)
+        y, i = coil_current(y, i_cmd, noise[k], p)
+        f = torque_motor_force(i, xf, p)
+        if p12_fn is not None:
+            qj = aj * vj
+            q1l = qj
+            q2l = qj
+            p12 = p12_fn(data, xs, qj, lap, clr)
+            p1 = pmid + 0.5 * p12
+            p2 = pmid - 0.5 * p12
+        else:
+            if flows_fn is not None:
+                q1l, q2l = flows_fn(data, xs, p1, p2, lap, lap_r)
+            else:
+                (rl1s, bl1s, r41s, rl1r, bl1r, r41r,
+                 rl2s, bl2s, r42s, rl2r, bl2r, r42r) = valve_coefficients(xs, vc)
+                q1l = net_flow(ps - p1, rl1s, bl1s, r41s, p1 - pr, rl1r, bl1r, r41r)
+                q2l = net_flow(p2 - pr, rl2r, bl2r, r42r, ps - p2, rl2s, bl2s, r42s)
+            qj = 0.5 * (q1l + q2l)
+            p12 = p1 - p2
+        xs_old = xs
+        xs, vs = spool_step(xs, vs, xf, qj, drive, c_eq, p, dt)
+        xf, vf = flapper_step(xf, vf, xs_old, f, cf, p, dt)
+        qm = aj * vj + clk * p12
+        xj, vj = jack_step(xj, vj, p12, p, dt)
+        if p12_fn is not None:
+            p1t = p1  # the surrogate's pressures at the start of this step
+            p2t = p2
+        else:
+            p1t, p2t, p1, p2 = chamber_step(p1t, p2t, q1l, q2l, qm, kvol, pvap, dt)
+        surf = surface_position(surf, xj, p)
+        done = j + 1
+        chk = xf + vf + xs + p1t + p2t + xj + vj
+        if not (abs(chk) < _DIVERGED_ABS):
+            vals = (xf, vf, xs, p1t, p2t, xj, vj)
+            status = len(vals)
+            for m in range(len(vals)):
+                if not (abs(vals[m]) < _DIVERGED_ABS):
+                    status = m + 1
+                    break
+            break
+    _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q2l)
+    return status, done, row, i_cmd
