@@ -69,10 +69,8 @@ class HealthThresholds:
     @classmethod
     def load(cls, path=None) -> 'HealthThresholds':
         path = path or config_dir() / 'health.yaml'
-        doc = read_yaml(path, 'health threshold')
+        doc = read_yaml(path, 'health threshold', 'name -> limit')
         fields = [f.name for f in dataclasses.fields(cls) if f.name != 'faults']
-        if not isinstance(doc, dict):
-            raise ParameterError(f'malformed health threshold file {path}: expected a mapping')
         missing = [f for f in fields if f not in doc]
         unknown = sorted(set(doc) - set(fields) - {'faults'})
         if missing or unknown:

@@ -161,10 +161,7 @@ _TUPLES = ('com_times_s', 'com_values_m', 'valve_test_flows_m3_s')
 def load_scenarios(path: Path | str | None = None) -> dict[str, Scenario]:
     """All scenarios of ``config/scenarios.yaml`` (or ``path``) by name."""
     path = Path(path) if path is not None else config_dir() / 'scenarios.yaml'
-    doc = read_yaml(path, 'scenario')
-    if not isinstance(doc, dict):
-        raise ParameterError(f'malformed scenario file {path}: expected a mapping of name -> '
-                             'scenario')
+    doc = read_yaml(path, 'scenario', 'name -> scenario')
     out = {}
     for name, entry in doc.items():
         if not isinstance(entry, dict):

@@ -12,7 +12,7 @@ import math
 from numba import njit
 
 from .friction import borello_mass
-from .servovalve import play
+from .servovalve import end_stops, play
 
 __all__ = ['jack_step', 'surface_position', 'quantise']
 
@@ -25,16 +25,7 @@ def jack_step(xj, vj, p12_pa, p, dt):
     vj, _, _ = borello_mass(vj, f, p.jack_static_friction_n, p.jack_dynamic_friction_n,
                             p.jack_mass_kg, dt)
     xj = xj + vj * dt
-    lim = p.jack_stroke_m
-    if xj > lim:
-        xj = lim
-        if vj > 0.0:
-            vj = 0.0
-    elif xj < -lim:
-        xj = -lim
-        if vj < 0.0:
-            vj = 0.0
-    return xj, vj
+    return end_stops(xj, vj, p.jack_stroke_m)
 
 
 @njit(cache=True, inline='always')

@@ -271,20 +271,24 @@ def config_dir() -> Path:
     return candidates[-1]
 
 
-def read_yaml(path: Path | str, what: str) -> object:
-    """Load a YAML file, turning every failure into a one-line :class:`ParameterError`."""
+def read_yaml(path: Path | str, what: str, mapping: str = '') -> object:
+    """Load a YAML file, turning every failure into a one-line :class:`ParameterError`; with
+    ``mapping`` (what it maps, e.g. ``'name -> scenario'``) the document must be a mapping."""
     path = Path(path)
     try:
         text = path.read_text()
     except OSError as exc:
         raise ParameterError(f'cannot read {what} file {path}: {exc.strerror}') from None
     try:
-        return yaml.safe_load(text)
+        doc = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, 'problem_mark', None)
         where = f' line {mark.line + 1}' if mark is not None else ''
         problem = getattr(exc, 'problem', None) or 'invalid YAML'
         raise ParameterError(f'malformed {what} file {path}{where}: {problem}') from None
+    if mapping and not isinstance(doc, dict):
+        raise ParameterError(f'malformed {what} file {path}: expected a mapping of {mapping}')
+    return doc
 
 
 def load_params(path: Path | str | None = None, **overrides) -> PlantParams:
@@ -293,10 +297,7 @@ def load_params(path: Path | str | None = None, **overrides) -> PlantParams:
     Each entry must be ``{value, unit, reason}`` with the unit the schema expects.
     """
     path = Path(path) if path is not None else config_dir() / 'eha_params.yaml'
-    doc = read_yaml(path, 'parameter')
-    if not isinstance(doc, dict):
-        raise ParameterError(f'malformed parameter file {path}: expected a mapping of '
-                             'name -> {value, unit, reason}')
+    doc = read_yaml(path, 'parameter', 'name -> {value, unit, reason}')
     values = {}
     for name, entry in doc.items():
         spec = SPEC_BY_NAME.get(name)

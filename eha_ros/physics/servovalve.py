@@ -35,7 +35,7 @@ from numba import njit
 from .friction import borello_massless
 
 __all__ = ['play', 'dead_zone', 'coil_current', 'torque_motor_force', 'flapper_step',
-           'spool_step', 'flapper_damping', 'magnetic_stiffness', 'MU0']
+           'spool_step', 'flapper_damping', 'magnetic_stiffness', 'end_stops', 'MU0']
 
 MU0 = 4e-7 * math.pi  # vacuum permeability [H/m]
 
@@ -93,6 +93,21 @@ def magnetic_stiffness(p) -> float:
 
 
 @njit(cache=True, inline='always')
+def end_stops(x, v, lim):
+    """A body against its stops at ``+-lim``: the position held there, a velocity into the
+    stop nulled; returns (x, v)."""
+    if x > lim:
+        x = lim
+        if v > 0.0:
+            v = 0.0
+    elif x < -lim:
+        x = -lim
+        if v < 0.0:
+            v = 0.0
+    return x, v
+
+
+@njit(cache=True, inline='always')
 def flapper_damping(p):
     """CF = 2 ZF sqrt(MF (KSF + KF)) [N s/m]."""
     return 2.0 * p.flapper_damping_ratio * math.sqrt(
@@ -106,16 +121,7 @@ def flapper_step(xf, vf, xs, force_n, cf, p, dt):
     acc = (force_n - cf * vf - p.flapper_stiffness_n_m * xf - fb) / p.flapper_mass_kg
     vf = vf + acc * dt
     xf = xf + vf * dt
-    lim = p.flapper_stroke_m
-    if xf > lim:
-        xf = lim
-        if vf > 0.0:
-            vf = 0.0
-    elif xf < -lim:
-        xf = -lim
-        if vf < 0.0:
-            vf = 0.0
-    return xf, vf
+    return end_stops(xf, vf, p.flapper_stroke_m)
 
 
 @njit(cache=True, inline='always')
