@@ -17,7 +17,8 @@ each process runs every model once before); ``bench/plant_rtf.py`` measures cost
 
     nice python bench/inloop.py [--models dlut,dnn,dga,lut,ga,nn,nn2] [--seeds 20]
         [--noise-models dlut,dnn,dga,lut,ga] [--large-dts 2e-6,5e-6,1e-5]
-        [--scenarios a,b] [--no-noise] [--wear nominal|all] [--jobs 2] [--out FILE]
+        [--scenarios a,b] [--no-noise] [--wear nominal|all] [--wear-points rand_6,...]
+        [--jobs 2] [--out FILE]
 """
 
 import argparse
@@ -77,6 +78,8 @@ def main(argv=None):
     ap.add_argument('--models', default='dlut,dnn,dga,lut,ga,nn,nn2')
     ap.add_argument('--scenarios', default=','.join(REFERENCE_SCENARIOS + EXTRA_SCENARIOS))
     ap.add_argument('--wear', choices=('nominal', 'all'), default='all')
+    ap.add_argument('--wear-points', default=None,
+                    help='only these wear points of --wear all (comma-separated names)')
     ap.add_argument('--seeds', type=int, default=20)
     ap.add_argument('--noise-models', default='dlut,dnn,dga,lut,ga',
                     help='models run with noise over the seeds (those also in --models)')
@@ -104,6 +107,13 @@ def main(argv=None):
               file=sys.stderr)
         return 2
     wear = WEAR_POINTS if args.wear == 'all' else {'nominal': None}
+    if args.wear_points is not None:
+        names = [w for w in args.wear_points.split(',') if w]
+        unknown = [w for w in names if w not in WEAR_POINTS]
+        if unknown:
+            print(f'inloop: error: unknown wear point(s) {", ".join(unknown)}', file=sys.stderr)
+            return 2
+        wear = {w: WEAR_POINTS[w] for w in names}
     noise_models = ([m for m in models if m in args.noise_models.split(',')]
                     if not args.no_noise and args.seeds > 0 else [])
     tasks = [('noise_free', wname, sc) for wname in wear for sc in scenarios]
