@@ -12,7 +12,7 @@ Figures 6.4-6.16).
 The surrogate comparison (``--compare-models``, default every shipped surrogate: the dynamic
 family and the reference's algebraic ``lut``, ``ga``, ``nn``, ``nn2``) is made physics-only
 (:mod:`eha_ros.evaluation`), where noise and perturbations can be controlled: noise off
-against the yardstick (hf at half the step and with the discharge coefficient +-0.1 %), and
+against the yardstick (hf at half the step and with the discharge coefficient within +-0.1 %), and
 with noise over ``--seeds`` seeds against hf's own seed-to-seed spread; plots in
 ``comparison/`` show the yardstick runs beside the models.
 
@@ -243,7 +243,7 @@ def _plot_comparison(runs, path: Path, scenario, result) -> None:
         for name, r in runs.items():
             if name in yard:
                 ax.plot(r.t, r[key] * scale, color='0.6', lw=3, alpha=0.6,
-                        label='hf yardstick (dt/2, Cd +-0.1 %)' if first else None)
+                        label='hf yardstick (dt/2, Cd within +-0.1 %)' if first else None)
                 first = False
         ax.plot(hf.t, hf[key] * scale, color='k', lw=1.2, label='hf')
         for name, r in runs.items():
@@ -272,7 +272,7 @@ def _comparison_report(c) -> list:
     lines = ['## Surrogates in the loop (physics only)', '',
              'Noise off, controller at 1 kHz, plant step 1 us. Relative Euclidean-norm error of '
              'jack position / P12 against hf. Yardstick: the largest change of hf itself at '
-             'half the step or with the discharge coefficient +-0.1 % - a difference inside '
+             'half the step or with the discharge coefficient within +-0.1 % - a difference inside '
              'it is not a model error. A model meets a case when jack <= max(1 %, 2 x '
              'yardstick) and P12 <= max(5 %, 2 x yardstick) (marked `ok`). Dynamic surrogates '
              '(metering edges learned, chambers and jack physical): '
