@@ -272,8 +272,8 @@ def _comparison_report(c) -> list:
     lines = ['## Surrogates in the loop (physics only)', '',
              'Noise off, controller at 1 kHz, plant step 1 us. Relative Euclidean-norm error of '
              'jack position / P12 against hf. Yardstick: the largest change of hf itself at '
-             'half the step or with the discharge coefficient within +-0.1 % - a difference inside '
-             'it is not a model error. A model meets a case when jack <= max(1 %, 2 x '
+             'half the step or with the discharge coefficient within +-0.1 % - a difference '
+             'inside it is not a model error. A model meets a case when jack <= max(1 %, 2 x '
              'yardstick) and P12 <= max(5 %, 2 x yardstick) (marked `ok`). Dynamic surrogates '
              '(metering edges learned, chambers and jack physical): '
              + ', '.join(m for m in models if m in DYNAMIC_MODELS)
