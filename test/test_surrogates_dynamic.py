@@ -85,8 +85,8 @@ def test_edge_flows_equal_hf_edge_equations(dyn):
 #: Tolerances of one edge's flow, relative, at every point of the large-flow corners: dlut
 #: 5e-4 (its bilinear cells in |dp| bend by up to (1/16)^2 / 32 = 1.2e-4 where q ~ sqrt|dp|,
 #: plus the float32 storage of ln G and the cubic interpolation in ln c; measured 1.6e-4), dga
-#: 1e-12 (its form is hf's, the polished coefficients hf's to rounding), dnn 5e-3 (the edge
-#: tolerance its build is held to, ``edge_errors`` max); clamping the drop anywhere below
+#: 1e-12 (its form is hf's, the polished coefficients hf's to rounding), dnn 5e-3 (twice the
+#: largest edge error its build records, meta['errors']); clamping the drop anywhere below
 #: DP_MAX_PA, or holding the opening short of the axis' end, errs by several percent.
 CORNER_TOL = {'dlut': 5e-4, 'dga': 1e-12, 'dnn': 5e-3}
 
