@@ -692,13 +692,14 @@ class GraphRun:
         now = time.monotonic()
         if self.collector is None or not self.collector.handshake.started:
             self._last_progress = now
-            from eha_ros.nodes.handshake import COORDINATOR
-            if (not self._coordinator_seen and self.collector is not None
-                    and COORDINATOR in self.collector.handshake.reports):
-                # the plant is up and counting its own timeout: wait for its verdict, not
-                # for the time its process took to come up
-                self._coordinator_seen = True
-                self._start_deadline = now + self.config.handshake_timeout_s + _START_MARGIN_S
+            if not self._coordinator_seen and self.collector is not None:
+                from eha_ros.nodes.handshake import COORDINATOR
+                if COORDINATOR in self.collector.handshake.reports:
+                    # the plant is up and counting its own timeout: wait for its verdict, not
+                    # for the time its process took to come up
+                    self._coordinator_seen = True
+                    self._start_deadline = (now + self.config.handshake_timeout_s
+                                            + _START_MARGIN_S)
             if now > self._start_deadline:
                 problem = (evaluate_reports(self.collector, self.config)
                            if self.collector is not None else 'the collector was never created')

@@ -48,7 +48,7 @@ class FluidSurrogate:
     data: tuple
     meta: dict
     #: the module that rebuilds the artefact (``python -m <rebuild>``)
-    rebuild: str = 'eha_ros.training'
+    rebuild: str = 'eha_ros.training.{lut,ga,nn,dynamic}'
 
     #: what the kernel gives: P12 (the reference's surrogates; :mod:`.dynamic`'s give flows)
     kernel_output = P12

@@ -109,4 +109,5 @@ def make_ga(coefficients, xs_max_m: float, q_max_m3_s: float = FLOW_MAX_M3_S,
     norm = np.array([XS_REF_M, Q_REF_M3_S, float(xs_max_m), float(q_max_m3_s)])
     meta = dict(meta or {})
     meta.setdefault('kind', 'ga')
-    return FluidSurrogate(name=name, kernel=ga_kernel, data=(c, norm), meta=meta)
+    return FluidSurrogate(name=name, kernel=ga_kernel, data=(c, norm), meta=meta,
+                          rebuild='eha_ros.training.ga')

@@ -161,4 +161,5 @@ def make_lut(xs_m, q_m3_s, overlap_m, clearance_m, p12_pa, meta: dict | None = N
     meta.setdefault('output', {'name': 'p12_pa', 'unit': 'Pa'})
     extra = [axis_tables(a) for a in axes]
     data = (*axes, table, *(e[0] for e in extra), *(e[1] for e in extra))
-    return FluidSurrogate(name=name, kernel=lut_kernel, data=data, meta=meta)
+    return FluidSurrogate(name=name, kernel=lut_kernel, data=data, meta=meta,
+                          rebuild='eha_ros.training.lut')

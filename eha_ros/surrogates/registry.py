@@ -38,6 +38,10 @@ KINDS = {
 }
 
 
+#: Shipped artefacts whose kind is not their name.
+_SHIPPED_KINDS = {'nn': 'mlp', 'nn2': 'mlp'}
+
+
 def shipped_surrogates() -> list[str]:
     """Names of the surrogate artefacts in :func:`eha_ros.artefacts.models_dir`."""
     return sorted(f.stem for f in models_dir('surrogates').glob('*.npz'))
@@ -52,7 +56,9 @@ def load_surrogate(name: str, params: PlantParams | None = None,
     if not path.is_file():
         raise SurrogateError(f'unknown surrogate {name!r} (shipped: '
                              f'{", ".join(shipped_surrogates())})')
-    data, meta = load_artefact(path, 'eha_ros.training', SurrogateError)
+    known = KINDS.get(_SHIPPED_KINDS.get(name, name))  # what rebuilds it, should it not load
+    data, meta = load_artefact(path, known.rebuild if known else 'eha_ros.training.'
+                               '{lut,ga,nn,dynamic}', SurrogateError)
     kind = KINDS.get(meta.get('kind'))
     if kind is None:
         raise SurrogateError(f'{path}: unknown surrogate kind {meta.get("kind")!r} (one of '
