@@ -51,6 +51,7 @@ CONSOLE_SCRIPTS = [
     'eha-campaign = eha_ros.tools.campaign:main',
     'eha-graph = eha_ros.tools.graph:main',
     'eha-recover = eha_ros.recording.recover:main',
+    'eha-sweep = eha_ros.sweep.cli:main',
 ]
 LAUNCHER_DIR = os.path.join('lib', PACKAGE)
 

@@ -1,0 +1,305 @@
+"""Run a sweep's cases in batches on Dask distributed (or in this process) into its dataset.
+
+Engines, the same dataset from each (timing and placement columns aside):
+
+* ``in_process``: a plain loop here, batch after batch (no Dask);
+* a ``LocalCluster`` of ``workers`` single-threaded worker processes, started and stopped here
+  (the kernels are single-threaded numba; each worker compiles them once, or loads them from
+  numba's on-disk cache);
+* an existing cluster at ``scheduler`` (``tcp://HOST:8786``: ``dask scheduler`` and ``dask
+  worker``, dask-jobqueue, Kubernetes); its workers need this package installed.
+
+The client forms the batches (points in their fixed order, ``batch_size`` points each),
+submits them, and writes each finished batch as its own Parquet file, atomically
+(:func:`.dataset.write_batch`).  A worker that dies takes its running batch with it; the
+scheduler runs that batch again elsewhere, and the client writes every batch once, when its
+result arrives: no case is lost or written twice.  A batch that kills its worker
+``distributed.scheduler.allowed-failures`` + 1 times (3 + 1 by default) is written as rows of
+status ``error``.  Ctrl-C (or any exception) cancels what is running, keeps every written
+batch, and :class:`SweepInterrupted` carries the counts; ``resume`` skips the cases already
+in the folder.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+from .dataset import SPEC_FILE, SweepError, done_case_ids, parts, schema, write_batch
+from .spec import Spec
+
+__all__ = ['run_sweep', 'run_batch', 'SweepInterrupted', 'default_batch_size', 'Progress']
+
+_WORKER_SPECS = {}
+
+
+class SweepInterrupted(KeyboardInterrupt):
+    """The sweep stopped before its end; ``summary`` says what is on disk."""
+
+    def __init__(self, summary: dict):
+        super().__init__('sweep interrupted')
+        self.summary = summary
+
+
+def _worker_name() -> str:
+    try:
+        from distributed import get_worker
+        return str(get_worker().address)
+    except (ImportError, ValueError):
+        return 'local'
+
+
+def _procedure(raw: dict, base: dict):
+    """The worker's procedure for a spec (parsed once per worker and spec)."""
+    import json
+    key = json.dumps([raw, base], sort_keys=True, default=str)
+    proc = _WORKER_SPECS.get(key)
+    if proc is None:
+        from .procedures import PROCEDURE_CLASSES
+        from .spec import parse_spec
+        spec = parse_spec(raw, check=False, base=base)
+        proc = PROCEDURE_CLASSES[spec.procedure](spec)
+        _WORKER_SPECS.clear()
+        _WORKER_SPECS[key] = proc
+    return proc
+
+
+def run_batch(raw: dict, base: dict, points: list) -> list:
+    """Rows of every case of ``points`` (the task a worker runs)."""
+    proc = _procedure(raw, base)
+    spec = proc.spec
+    worker = _worker_name()
+    rows = []
+    for pt in points:
+        for row in proc.run_point(pt):
+            row.update(point_id=pt.point_id, seed=pt.seed, procedure=spec.procedure,
+                       scenario=spec.scenario, noise=spec.noise, worker=worker, **pt.inputs)
+            rows.append(row)
+    return rows
+
+
+def warm_up(raw: dict, base: dict) -> str:
+    """Load every model of the spec and compile its kernels (run the spec's first point), so
+    that timing columns leave JIT compilation out."""
+    proc = _procedure(raw, base)
+    spec = proc.spec
+    pts = spec.points()[:1]
+    for m in spec.models:
+        proc.model(m)
+    if pts:
+        proc.run_point(pts[0])
+    return _worker_name()
+
+
+def default_batch_size(n_points: int, workers: int) -> int:
+    """About 16 batches per worker (the tail of the sweep waits on one batch at most), at
+    most 32 points each (a batch is what Ctrl-C or a dying worker costs)."""
+    return max(1, min(32, math.ceil(n_points / (16 * max(1, workers)))))
+
+
+class Progress:
+    """Cases done, cases per second, ETA and failures, on one line (stderr)."""
+
+    def __init__(self, total: int, stream=None, every_s: float = 0.5):
+        self.total = total
+        self.done = 0
+        self.failed = 0
+        self.t0 = time.monotonic()
+        self.stream = stream if stream is not None else sys.stderr
+        self.tty = hasattr(self.stream, 'isatty') and self.stream.isatty()
+        self.every_s = every_s if self.tty else 10.0
+        self._last = -math.inf
+
+    def update(self, rows: list) -> None:
+        self.done += len(rows)
+        self.failed += sum(1 for r in rows if r['status'] != 'ok')
+        now = time.monotonic()
+        if now - self._last >= self.every_s or self.done >= self.total:
+            self._last = now
+            self.show()
+
+    def line(self) -> str:
+        el = time.monotonic() - self.t0
+        rate = self.done / el if el > 0 else 0.0
+        eta = (self.total - self.done) / rate if rate > 0 else math.inf
+        width = 24
+        fill = int(width * self.done / self.total) if self.total else width
+        eta_s = f'{eta:5.0f} s' if math.isfinite(eta) else '    ? s'
+        return (f'[{"#" * fill}{"." * (width - fill)}] {self.done}/{self.total} cases, '
+                f'{rate:6.2f} cases/s, ETA {eta_s}, {self.failed} failed')
+
+    def show(self) -> None:
+        end = '\r' if self.tty and self.done < self.total else '\n'
+        print(self.line(), end=end, file=self.stream, flush=True)
+
+
+def _prepare_folder(out: Path, spec: Spec, resume: bool) -> None:
+    import yaml
+    spec_path = out / SPEC_FILE
+    if out.exists() and not out.is_dir():
+        raise SweepError(f'--out {out} exists and is not a folder')
+    if resume:
+        if not spec_path.is_file():
+            raise SweepError(f'--resume: {out} holds no sweep ({SPEC_FILE} missing)')
+        try:
+            stored = yaml.safe_load(spec_path.read_text())
+        except (OSError, yaml.YAMLError):
+            raise SweepError(f'--resume: {spec_path} is unreadable') from None
+        if stored != {'spec': spec.canonical(), 'base': spec.base}:
+            raise SweepError(f'--resume: {out} holds a sweep of another spec (or other nominal '
+                             'parameters); resume with the spec it was started with')
+        for tmp in out.glob('.part-*.tmp'):  # a batch cut off while being written
+            tmp.unlink()
+        return
+    if out.exists() and any(out.iterdir()):
+        raise SweepError(f'--out {out} is not empty: use --resume to continue the sweep in it, '
+                         'or another folder (nothing is overwritten)')
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / f'.{SPEC_FILE}.tmp'
+    tmp.write_text(yaml.safe_dump({'spec': spec.canonical(), 'base': spec.base},
+                                  sort_keys=False))
+    os.replace(tmp, spec_path)
+
+
+def _has_bokeh() -> bool:
+    """Whether Dask's dashboard can be served (it needs bokeh, not installed by default)."""
+    import importlib.util
+    return importlib.util.find_spec('bokeh') is not None
+
+
+def _client(workers: int, scheduler: str | None):
+    """``(client, cluster or None)``: connected to ``scheduler``, or to a LocalCluster of
+    ``workers`` single-threaded processes started here."""
+    from distributed import Client, LocalCluster
+    if scheduler:
+        try:
+            return Client(scheduler, timeout='10s'), None
+        except (OSError, TimeoutError) as exc:
+            raise SweepError(f'--scheduler {scheduler}: cannot connect ({exc})') from None
+    dashboard = ':0' if _has_bokeh() else None
+    # single-threaded workers: numba and BLAS pools of one thread in each process
+    for var in ('NUMBA_NUM_THREADS', 'OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS',
+                'MKL_NUM_THREADS'):
+        os.environ.setdefault(var, '1')
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           dashboard_address=dashboard, silence_logs=40)
+    return Client(cluster), cluster
+
+
+def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None = None,
+              in_process: bool = False, resume: bool = False, batch_size: int | None = None,
+              progress: bool | Progress = True, warm: bool = False, log=None) -> dict:
+    """Run every case of ``spec`` not yet in ``out``; returns the summary (counts, wall time,
+    engine).  Raises :class:`SweepInterrupted` on Ctrl-C, with every finished batch on disk.
+
+    ``workers``: LocalCluster size (default: the cores of this machine); ``scheduler``: an
+    existing cluster instead; ``in_process``: no Dask.  ``warm``: compile and load every model
+    on every worker before the cases (timing columns without JIT).
+    """
+    log = log or (lambda text: print(text, file=sys.stderr, flush=True))
+    out = Path(out)
+    _prepare_folder(out, spec, resume)
+    sch = schema(spec)
+    points = spec.points()
+    n_cases = sum(len(p.cases) for p in points)
+    done = done_case_ids(out) if resume else set()
+    todo = [p for p in points if any(c.case_id not in done for c in p.cases)]
+    n_todo = sum(1 for p in todo for c in p.cases if c.case_id not in done)
+    workers = int(workers or os.cpu_count() or 1)
+    if workers < 1:
+        raise SweepError(f'--workers {workers} must be at least 1')
+    size = batch_size or default_batch_size(len(todo), 1 if in_process else workers)
+    batches = [todo[i:i + size] for i in range(0, len(todo), size)]
+    engine = 'in-process' if in_process else (f'scheduler {scheduler}' if scheduler
+                                              else f'LocalCluster of {workers} workers')
+    summary = {'out': str(out), 'cases': n_cases, 'points': len(points),
+               'already_done': n_cases - n_todo, 'ran': 0, 'ok': 0, 'diverged': 0, 'error': 0,
+               'batches': len(batches), 'batch_size': size, 'engine': engine,
+               'wall_s': None, 'interrupted': False}
+    bar = progress if isinstance(progress, Progress) else (Progress(n_todo) if progress
+                                                           else None)
+    raw, base = spec.canonical(), spec.base
+    t0 = time.monotonic()
+
+    def finished(batch, rows):
+        rows = [r for r in rows if r['case_id'] not in done]
+        for r in rows:  # rows a worker never made (KilledWorker) lack the point's fields
+            r.setdefault('procedure', spec.procedure)
+            r.setdefault('scenario', spec.scenario)
+            r.setdefault('noise', spec.noise)
+        write_batch(out, rows, sch, batch[0].index)
+        for r in rows:
+            summary[r['status']] = summary.get(r['status'], 0) + 1
+        summary['ran'] += len(rows)
+        if bar is not None:
+            bar.update(rows)
+
+    client = cluster = None
+    try:
+        if in_process:
+            if warm and batches:
+                warm_up(raw, base)
+            for b in batches:
+                finished(b, run_batch(raw, base, b))
+        elif batches:
+            client, cluster = _client(workers, scheduler)
+            if _has_bokeh():
+                log(f'eha-sweep: dashboard {client.dashboard_link}')
+            if warm:
+                client.run(warm_up, raw, base)
+            _run_dask(client, raw, base, batches, finished)
+    except BaseException as exc:
+        summary['interrupted'] = True
+        summary['wall_s'] = round(time.monotonic() - t0, 3)
+        if bar is not None and bar.tty:
+            print(file=bar.stream)
+        _close(client, cluster)
+        if isinstance(exc, KeyboardInterrupt):
+            raise SweepInterrupted(summary) from None
+        raise
+    _close(client, cluster)
+    summary['wall_s'] = round(time.monotonic() - t0, 3)
+    summary['files'] = len(parts(out))
+    return summary
+
+
+def _run_dask(client, raw, base, batches, finished) -> None:
+    import hashlib
+
+    from distributed import as_completed
+    from distributed.scheduler import KilledWorker
+    futures = {}
+    for b in batches:
+        key = 'eha-sweep-' + hashlib.sha256('.'.join(p.point_id for p in b).encode()) \
+            .hexdigest()[:16]
+        futures[client.submit(run_batch, raw, base, b, key=key, pure=False)] = b
+    try:
+        for fut in as_completed(futures):
+            b = futures.pop(fut)
+            try:
+                rows = fut.result()
+            except KilledWorker as exc:  # the batch killed every worker it ran on
+                rows = [{'case_id': c.case_id, 'point_id': p.point_id, 'model': c.model,
+                         'dt_s': c.dt_s, 'seed': p.seed, 'status': 'error',
+                         'error': f'KilledWorker: {exc}', **p.inputs}
+                        for p in b for c in p.cases]
+            finished(b, rows)
+    finally:
+        if futures:
+            client.cancel(list(futures))
+
+
+def _close(client, cluster) -> None:
+    if client is not None:
+        try:
+            client.close(timeout=10)
+        except Exception:  # closing is best effort: the results are on disk
+            pass
+    if cluster is not None:
+        try:
+            cluster.close(timeout=10)
+        except Exception:
+            pass

@@ -1,0 +1,426 @@
+"""What runs at a point, and the dataset row of each of its cases.
+
+Three procedures, physics only:
+
+* :class:`ScenarioProcedure` (``scenario``): the closed loop on a scenario of
+  ``config/scenarios.yaml``, controller at 1 kHz, every tick recorded (as the in-loop
+  comparison, :func:`eha_ros.evaluation.run`).  Metrics: the comparison's features
+  (:func:`eha_ros.evaluation.features`, one implementation) and, for a surrogate, the relative
+  errors of jack position and P12 against hf run at the same point.  With ``compare:
+  yardstick`` and noise off the point is :func:`eha_ros.evaluation.noise_free` (hf's yardstick,
+  the bounds, the features' spread); with noise on, hf is also run at seed + 1 (hf's
+  seed-to-seed spread) and with the discharge coefficient + 0.1 % (as
+  :func:`eha_ros.evaluation.with_noise`).
+* :class:`PreflightProcedure` (``preflight_check``): the pre-flight check
+  (:func:`eha_ros.physics.maintenance.run_preflight`); the pre-flight network's estimates and
+  deviations, the check's features (signal ``preflight_features``) on request.
+* :class:`ValveTestProcedure` (``valve_test``): the valve test's P12 curves (the map transients
+  the plant reports at the end of each hold) and the diagnostic network's wear estimate.
+
+A case that diverges is a row with status ``diverged``, one that raises a row with status
+``error``; both carry the message in ``error``.  Timing columns are named ``wall_*``.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from eha_ros.evaluation import CONTROLLER_PERIOD_S, features, run
+from eha_ros.physics import ParameterError, SimulationDiverged
+from eha_ros.physics.params import replace
+from eha_ros.surrogates.base import relative_error
+
+__all__ = ['PROCEDURE_CLASSES', 'Procedure', 'ScenarioProcedure', 'PreflightProcedure',
+           'ValveTestProcedure', 'FEATURES']
+
+#: The in-loop comparison's features (:func:`eha_ros.evaluation.features`) and their types.
+FEATURES = (('rms_tracking_error_m', 'float'), ('final_position_m', 'float'),
+            ('stick_slip_steps', 'int'), ('mean_step_m', 'float'), ('p12_rms_pa', 'float'),
+            ('p12_peak_pa', 'float'))
+
+
+def _status(exc: BaseException) -> tuple:
+    status = 'diverged' if isinstance(exc, SimulationDiverged) else 'error'
+    return status, f'{type(exc).__name__}: {exc}'
+
+
+class Procedure:
+    """A procedure: its metrics (name, type), signals, checks and the run of one point."""
+
+    SIGNALS: tuple = ()
+    #: Interval [s] the signals are recorded at (``signal_dt_s`` a whole multiple of it).
+    RECORD_DT_S = CONTROLLER_PERIOD_S
+
+    def __init__(self, spec):
+        self.spec = spec
+        self._models = {}
+
+    @classmethod
+    def metrics(cls, compare=None) -> tuple:
+        return ()
+
+    @classmethod
+    def metric_names(cls, compare=None) -> tuple:
+        return tuple(n for n, _ in cls.metrics(compare))
+
+    def wanted(self) -> tuple:
+        """``(name, type)`` of the metric columns of this spec."""
+        allm = self.metrics(self.spec.compare)
+        if self.spec.metrics is None:
+            return allm
+        return tuple(m for m in allm if m[0] in self.spec.metrics)
+
+    @classmethod
+    def check(cls, spec, where: str) -> None:
+        """Every point's parameters within the plant's ranges and every model's validity."""
+        from eha_ros.physics.stability import check_dt
+        every = spec.signal_dt_s / cls.RECORD_DT_S
+        if spec.signals and abs(every - round(every)) > 1e-9 * every:
+            raise _spec_error(f'{where}: signal_dt_s = {spec.signal_dt_s:g} s must be a whole '
+                              f'multiple of {cls.RECORD_DT_S:g} s')
+        proc = cls(spec)
+        models = {}
+        for m in spec.models:
+            try:
+                models[m] = proc.model(m)
+            except (ValueError, OSError) as exc:
+                raise _spec_error(f'{where}: model {m}: {exc}') from None
+        for inputs, _ in spec._input_sets():
+            for k, v in spec.tie.items():
+                inputs[k] = inputs[v]
+            label = ', '.join(f'{k}={v:g}' if isinstance(v, float) else f'{k}={v}'
+                              for k, v in inputs.items()) or 'nominal'
+            try:
+                p = spec.point_params(inputs)
+                for m, dt in spec.case_models():
+                    s = models.get(m)
+                    if s is not None:
+                        s.check_params(p)
+                    if cls is ScenarioProcedure:
+                        check_dt(p, dt, s)
+            except ValueError as exc:
+                raise _spec_error(f'{where}: case {label}: {exc}') from None
+
+    def model(self, name):
+        """The fluid block of model ``name`` (``None`` for hf), loaded once."""
+        if name == 'hf':
+            return None
+        if name not in self._models:
+            from eha_ros.physics import default_params
+            from eha_ros.surrogates.registry import load_surrogate
+            self._models[name] = load_surrogate(name, default_params())
+        return self._models[name]
+
+    def _signals(self, arrays: dict) -> dict:
+        every = int(round(self.spec.signal_dt_s / self.RECORD_DT_S))
+        return {f'signal_{s}': np.asarray(arrays[s], dtype=float)[every - 1::every].tolist()
+                for s in self.spec.signals}
+
+    def run_point(self, point) -> list:
+        raise NotImplementedError
+
+
+def _spec_error(text):
+    from .spec import SpecError
+    return SpecError(text)
+
+
+def _errors(r, ref) -> dict:
+    return {'jack_rel_error': relative_error(r['jack_position_m'], ref['jack_position_m']),
+            'p12_rel_error': relative_error(r['p12_pa'], ref['p12_pa'])}
+
+
+class ScenarioProcedure(Procedure):
+    """The closed loop on the spec's scenario (see the module's docstring)."""
+
+    SIGNALS = ('time_s', 'command_m', 'current_command_a', 'coil_current_a',
+               'flapper_position_m', 'spool_position_m', 'p1_pa', 'p2_pa', 'p12_pa',
+               'load_flow_m3_s', 'jack_position_m', 'jack_velocity_m_s')
+
+    @classmethod
+    def metrics(cls, compare=None) -> tuple:
+        out = FEATURES + (('jack_rel_error', 'float'), ('p12_rel_error', 'float'))
+        if compare == 'yardstick':
+            out += (('yardstick_jack', 'float'), ('yardstick_p12', 'float'),
+                    ('bound_jack', 'float'), ('bound_p12', 'float'),
+                    ('meets_bounds', 'bool'))
+            out += tuple((f'spread_{f}', 'float') for f, _ in FEATURES)
+            out += (('seed_spread_jack', 'float'), ('seed_spread_p12', 'float'),
+                    ('cd_plus_0p1pct_jack', 'float'), ('cd_plus_0p1pct_p12', 'float'))
+        return out
+
+    @classmethod
+    def check(cls, spec, where: str) -> None:
+        if spec.compare == 'yardstick' and spec.noise and spec.large_dts:
+            raise _spec_error(f'{where}: large_dts are compared noise-free only')
+        super().check(spec, where)
+
+    def run_point(self, point) -> list:
+        if self.spec.compare == 'yardstick':
+            if self.spec.noise:
+                return self._yardstick_noise(point)
+            return self._yardstick(point)
+        sc = self.spec.scenario
+        t0 = time.perf_counter()
+        rows = {}
+        ref = None
+        try:
+            p = point.params(self.spec)
+        except ParameterError as exc:
+            return [self._row(c, {}, *_status(exc)) for c in point.cases]
+        need_ref = any(c.model != 'hf' for c in point.cases)
+        order = sorted(point.cases, key=lambda c: c.model != 'hf')
+        for c in order:
+            t = time.perf_counter()
+            try:
+                if c.model == 'hf' and c.dt_s == self.spec.dt_s and ref is not None:
+                    r = ref
+                else:
+                    r = run(p, sc, self.model(c.model), dt=c.dt_s, seed=point.seed)
+                if c.model == 'hf' and c.dt_s == self.spec.dt_s:
+                    ref = r
+                m = features(r)
+                if c.model != 'hf':
+                    if ref is None and need_ref:
+                        ref = run(p, sc, dt=self.spec.dt_s, seed=point.seed)
+                    m.update(_errors(r, ref))
+                row = self._row(c, m, 'ok', None, self._signals(r.data))
+            except Exception as exc:  # a diverging or refused run is a result too
+                row = self._row(c, {}, *_status(exc))
+                if c.model == 'hf':
+                    ref = None
+                    need_ref = False  # no reference: the surrogates' errors stay empty
+            row['wall_s'] = time.perf_counter() - t
+            rows[c.case_id] = row
+        wall = time.perf_counter() - t0
+        for row in rows.values():
+            row['wall_point_s'] = wall
+        return [rows[c.case_id] for c in point.cases]
+
+    def _row(self, case, metrics, status, error=None, signals=None) -> dict:
+        return {'case_id': case.case_id, 'model': case.model, 'dt_s': case.dt_s,
+                'status': status, 'error': error, **metrics, **(signals or {})}
+
+    def _yardstick(self, point) -> list:
+        from eha_ros.evaluation import noise_free
+        t0 = time.perf_counter()
+        try:
+            p = point.params(self.spec)
+            sur = {m: self.model(m) for m in self.spec.models if m != 'hf'}
+            out = noise_free(p, self.spec.scenario, sur, self.spec.large_dts)
+        except Exception as exc:
+            return [self._row(c, {}, *_status(exc)) for c in point.cases]
+        wall = time.perf_counter() - t0
+        common = {'yardstick_jack': out['yardstick']['jack'],
+                  'yardstick_p12': out['yardstick']['p12'],
+                  'bound_jack': out['bound']['jack'], 'bound_p12': out['bound']['p12'],
+                  **{f'spread_{f}': v for f, v in out['feature_spread'].items()}}
+        duration = self._duration()
+        rows = []
+        for c in point.cases:
+            if c.model == 'hf' and c.dt_s == self.spec.dt_s:
+                row = self._row(c, {**out['hf_features'], **common}, 'ok')
+                row['wall_cost_s_per_s'] = out['hf_cost_s_per_s']
+            else:
+                key = c.model if c.dt_s == self.spec.dt_s else f'{c.model}@dt={c.dt_s:g}'
+                r = out['models'][key]
+                if 'error' in r:
+                    status = 'diverged' if r['error'].startswith('SimulationDiverged') \
+                        else 'error'
+                    row = self._row(c, {}, status, r['error'])
+                else:
+                    row = self._row(c, {**r['features'], 'jack_rel_error': r['jack'],
+                                        'p12_rel_error': r['p12'], **common,
+                                        'meets_bounds': r['meets']}, 'ok')
+                    row['wall_cost_s_per_s'] = r['cost_s_per_s']
+            if row.get('wall_cost_s_per_s') is not None:
+                row['wall_s'] = row['wall_cost_s_per_s'] * duration
+            row['wall_point_s'] = wall
+            rows.append(row)
+        return rows
+
+    def _duration(self) -> float:
+        from eha_ros.physics import get_scenario
+        return float(get_scenario(self.spec.scenario).duration_s)
+
+    def _yardstick_noise(self, point) -> list:
+        """hf at seed k, k + 1 and with Cd + 0.1 %; each model at seed k against hf at k."""
+        sc, k = self.spec.scenario, point.seed
+        t0 = time.perf_counter()
+        try:
+            p = point.params(self.spec)
+            hf = run(p, sc, seed=k)
+            hf1 = run(p, sc, seed=k + 1)
+            cd = run(replace(p, discharge_coefficient=p.discharge_coefficient * 1.001), sc,
+                     seed=k)
+        except Exception as exc:
+            return [self._row(c, {}, *_status(exc)) for c in point.cases]
+        spread, same = _errors(hf1, hf), _errors(cd, hf)
+        rows = []
+        for c in point.cases:
+            t = time.perf_counter()
+            if c.model == 'hf':
+                row = self._row(c, {**features(hf),
+                                    'seed_spread_jack': spread['jack_rel_error'],
+                                    'seed_spread_p12': spread['p12_rel_error'],
+                                    'cd_plus_0p1pct_jack': same['jack_rel_error'],
+                                    'cd_plus_0p1pct_p12': same['p12_rel_error']}, 'ok',
+                                None, self._signals(hf.data))
+                row['wall_s'] = hf.wall_time_s
+            else:
+                try:
+                    r = run(p, sc, self.model(c.model), seed=k)
+                    row = self._row(c, {**features(r), **_errors(r, hf)}, 'ok', None,
+                                    self._signals(r.data))
+                    row['wall_s'] = r.wall_time_s
+                except Exception as exc:
+                    row = self._row(c, {}, *_status(exc))
+                    row['wall_s'] = time.perf_counter() - t
+            rows.append(row)
+        wall = time.perf_counter() - t0
+        for row in rows:
+            row['wall_point_s'] = wall
+            row['wall_cost_s_per_s'] = row['wall_s'] / self._duration()
+        return rows
+
+
+class PreflightProcedure(Procedure):
+    """The pre-flight check (see the module's docstring)."""
+
+    from eha_ros.physics.maintenance import PREFLIGHT_SIGNALS, PREFLIGHT_TICK_S
+    SIGNALS = ('command_a',) + PREFLIGHT_SIGNALS + ('preflight_features',)
+    RECORD_DT_S = PREFLIGHT_TICK_S
+
+    @classmethod
+    def metrics(cls, compare=None) -> tuple:
+        from eha_ros.health.preflight import FAULT_NAMES
+        out = tuple((f'est_{n}', 'float') for n in FAULT_NAMES)
+        out += tuple((f'std_{n}', 'float') for n in FAULT_NAMES)
+        return out + (('p12_rel_error', 'float'), ('spool_rel_error', 'float'))
+
+    @classmethod
+    def check(cls, spec, where: str) -> None:
+        super().check(spec, where)
+        if any(m.startswith(('est_', 'std_')) for m, _ in cls(spec).wanted()):
+            from eha_ros.health.preflight import load_faults
+            try:
+                load_faults()
+            except ValueError as exc:
+                raise _spec_error(f'{where}: {exc}') from None
+
+    def _signals(self, arrays: dict) -> dict:
+        out = {}
+        if 'preflight_features' in self.spec.signals:
+            from eha_ros.health.preflight import preflight_features
+            out['signal_preflight_features'] = preflight_features(arrays).tolist()
+        rest = [s for s in self.spec.signals if s != 'preflight_features']
+        every = int(round(self.spec.signal_dt_s / self.RECORD_DT_S))
+        out.update({f'signal_{s}': np.asarray(arrays[s], dtype=float)[every - 1::every]
+                    .tolist() for s in rest})
+        return out
+
+    def run_point(self, point) -> list:
+        from eha_ros.physics.maintenance import run_preflight
+        wanted = {m for m, _ in self.wanted()}
+        estimate = any(m.startswith(('est_', 'std_')) for m in wanted)
+        t0 = time.perf_counter()
+        rows, ref = [], None
+        try:
+            p = point.params(self.spec)
+        except ParameterError as exc:
+            return [{'case_id': c.case_id, 'model': c.model, 'dt_s': c.dt_s,
+                     **dict(zip(('status', 'error'), _status(exc)))} for c in point.cases]
+        for c in sorted(point.cases, key=lambda c: c.model != 'hf'):
+            t = time.perf_counter()
+            row = {'case_id': c.case_id, 'model': c.model, 'dt_s': c.dt_s}
+            try:
+                rec = run_preflight(p, seed=point.seed, dt_s=c.dt_s, fluid=self.model(c.model))
+                m = {}
+                if estimate:
+                    from eha_ros.health.preflight import load_faults
+                    e = load_faults().estimate(rec)
+                    m.update({f'est_{n}': v for n, v in e.values.items()})
+                    m.update({f'std_{n}': v for n, v in e.stds.items()})
+                if c.model == 'hf':
+                    ref = rec
+                elif wanted & {'p12_rel_error', 'spool_rel_error'}:
+                    if ref is None:
+                        ref = run_preflight(p, seed=point.seed, dt_s=c.dt_s)
+                    m['p12_rel_error'] = relative_error(rec['p12_pa'], ref['p12_pa'])
+                    m['spool_rel_error'] = relative_error(rec['spool_position_m'],
+                                                          ref['spool_position_m'])
+                row.update(status='ok', error=None, **m, **self._signals(rec))
+            except Exception as exc:
+                row.update(zip(('status', 'error'), _status(exc)))
+            row['wall_s'] = time.perf_counter() - t
+            rows.append(row)
+        wall = time.perf_counter() - t0
+        by_id = {r['case_id']: r for r in rows}
+        for r in rows:
+            r['wall_point_s'] = wall
+        return [by_id[c.case_id] for c in point.cases]
+
+
+class ValveTestProcedure(Procedure):
+    """The valve test's curves and the diagnostic network's estimate (module docstring)."""
+
+    SIGNALS = ('p12_pa',)
+    RECORD_DT_S = 1.0
+
+    @classmethod
+    def metrics(cls, compare=None) -> tuple:
+        return (('est_radial_clearance_m', 'float'), ('est_radial_clearance_std_m', 'float'),
+                ('est_overlap_m', 'float'), ('est_overlap_std_m', 'float'),
+                ('pressure_residual_pa', 'float'))
+
+    @classmethod
+    def check(cls, spec, where: str) -> None:
+        if spec.signals and spec.signal_dt_s != 1e-3:
+            raise _spec_error(f'{where}: valve_test keeps its P12 curves whole (no '
+                              'signal_dt_s)')
+        spec.signal_dt_s = 1e-3
+        super().check(spec, where)
+        from eha_ros.health.valve_test import load_diagnostic
+        try:
+            load_diagnostic()
+        except ValueError as exc:
+            raise _spec_error(f'{where}: {exc}') from None
+
+    def flows(self) -> tuple:
+        if self.spec.flows_m3_s:
+            return self.spec.flows_m3_s
+        from eha_ros.physics import get_scenario
+        return tuple(get_scenario('valve_test').valve_test_flows_m3_s)
+
+    def run_point(self, point) -> list:
+        from eha_ros.health.valve_test import ValveTestEstimator
+        from eha_ros.physics import default_params
+        from eha_ros.physics.maintenance import MAP_POINTS
+        from eha_ros.physics.maps import spool_grid, transient_map
+        (c,) = point.cases
+        t0 = time.perf_counter()
+        row = {'case_id': c.case_id, 'model': c.model, 'dt_s': c.dt_s}
+        try:
+            p = point.params(self.spec)
+            grid = spool_grid(MAP_POINTS, p.spool_stroke_m)
+            curves = [(q, grid, np.asarray(transient_map(grid, q, params=p, dt_s=c.dt_s)
+                                           ['p12_pa'], dtype=float)) for q in self.flows()]
+            est = ValveTestEstimator(replace(default_params(), noise_std_a=0.0)).estimate(
+                curves)
+            row.update(status='ok', error=None,
+                       est_radial_clearance_m=est.radial_clearance_m,
+                       est_radial_clearance_std_m=est.radial_clearance_std_m,
+                       est_overlap_m=est.overlap_m, est_overlap_std_m=est.overlap_std_m,
+                       pressure_residual_pa=est.pressure_residual_pa)
+            if self.spec.signals:
+                row['signal_p12_pa'] = np.concatenate([cv[2] for cv in curves]).tolist()
+        except Exception as exc:
+            row.update(zip(('status', 'error'), _status(exc)))
+        row['wall_s'] = row['wall_point_s'] = time.perf_counter() - t0
+        return [row]
+
+
+PROCEDURE_CLASSES = {'scenario': ScenarioProcedure, 'preflight_check': PreflightProcedure,
+                     'valve_test': ValveTestProcedure}

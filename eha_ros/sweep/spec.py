@@ -1,0 +1,441 @@
+"""A sweep's spec: what to run, checked whole before anything runs, and its cases.
+
+The YAML form (README, "Sweeps")::
+
+    procedure: scenario            # scenario | preflight_check | valve_test
+    scenario: sine_0p01_2pi        # a name of config/scenarios.yaml (procedure scenario)
+    models: [hf, dlut]             # hf and any shipped surrogate
+    seeds: [0]                     # noise seeds (or an integer n: seeds 0 .. n-1)
+    noise: false                   # false: torque-motor noise off (noise_std_a = 0)
+    parameters:                    # plant names; each list a grid axis, crossed with the others
+      radial_clearance_m: [2.0e-6, 3.0e-6, 4.0e-6]
+      overlap_supply_m: [0.0, 1.0e-6]
+    random: {n: 1000, seed: 1, ranges: {radial_clearance_m: [1.0e-6, 6.0e-6]}}
+    tie: {overlap_return_m: overlap_supply_m}   # a parameter set equal to a swept one
+    cases: [{radial_clearance_m: 3.0e-6, seed: 4}, ...]   # explicit cases (with or instead)
+    compare: yardstick             # scenario: hf's yardstick per case (evaluation.noise_free)
+    large_dts: [2.0e-6]            # with the yardstick: hf and dynamic models at these steps
+    dt_s: 1.0e-6                   # plant step [s]
+    signals: [jack_position_m]     # trajectories kept per case, every signal_dt_s
+    signal_dt_s: 1.0e-3
+    metrics: [rms_tracking_error_m]   # a subset of the procedure's metrics (default: all)
+
+A **point** is one parameter set and one seed; its **cases** are the models (and steps) run
+at it, one dataset row each.  hf runs once per point and is the reference of every surrogate
+case of the point.  A case's id hashes what determines its result: procedure, scenario,
+model, step, seed and every plant parameter (so a changed ``config/eha_params.yaml`` changes
+the ids).  Everything here runs in the client before a worker starts: an unknown key, model,
+scenario or parameter, a value the plant or a model refuses and a sweep larger than
+``max_cases`` each raise :class:`SpecError` with one line.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import itertools
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from eha_ros.physics import ParameterError, get_scenario, params_to_dict
+from eha_ros.physics.params import SPEC_BY_NAME
+
+__all__ = ['SpecError', 'Spec', 'Point', 'Case', 'PROCEDURES', 'MAX_CASES', 'load_spec',
+           'parse_spec', 'case_id']
+
+PROCEDURES = ('scenario', 'preflight_check', 'valve_test')
+#: The default guard on a sweep's size (``--max-cases``).
+MAX_CASES = 100_000
+#: Keys a spec may have.
+KEYS = ('procedure', 'scenario', 'models', 'seeds', 'noise', 'parameters', 'random', 'tie',
+        'cases', 'compare', 'large_dts', 'dt_s', 'signals', 'signal_dt_s', 'metrics',
+        'flows_m3_s')
+#: Plant step of every procedure [s] (the reference's, and the in-loop comparison's).
+DT_S = 1e-6
+
+
+class SpecError(ValueError):
+    """A spec that cannot run: one line naming what is wrong."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Case:
+    """One row of the dataset: a model (at a step) at a point."""
+
+    case_id: str
+    model: str
+    dt_s: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Point:
+    """One parameter set and seed; ``inputs`` are the swept plant names and their values."""
+
+    point_id: str
+    index: int
+    inputs: dict
+    seed: int
+    cases: tuple
+
+    def params(self, spec: 'Spec'):
+        return spec.point_params(self.inputs)
+
+
+def _float(name, v, where):
+    if isinstance(v, bool):
+        raise SpecError(f'{where}: {name} = {v!r} is not a number')
+    if isinstance(v, str):
+        try:
+            return float(v)
+        except ValueError:
+            raise SpecError(f'{where}: {name} = {v!r} is not a number') from None
+    if isinstance(v, (int, float)):
+        return float(v)
+    raise SpecError(f'{where}: {name} = {v!r} is not a number')
+
+
+def _value(name, v, where):
+    """A plant value: a number, or a mode name for a mode parameter."""
+    spec = SPEC_BY_NAME.get(name)
+    if spec is None:
+        raise SpecError(f'{where}: unknown parameter {name!r} (not a plant name of '
+                        'config/eha_params.yaml)')
+    if spec.choices:
+        if v not in spec.choices:
+            raise SpecError(f'{where}: {name} = {v!r} must be one of {", ".join(spec.choices)}')
+        return str(v)
+    return _float(name, v, where)
+
+
+def case_id(procedure: str, scenario, model: str, dt_s: float, seed: int, params) -> str:
+    """The id of a case: a hash of what determines its result (16 hex digits)."""
+    d = params_to_dict(params)
+    blob = json.dumps({'procedure': procedure, 'scenario': scenario, 'model': model,
+                       'dt_s': repr(float(dt_s)), 'seed': int(seed),
+                       'params': {k: (repr(v) if isinstance(v, float) else v)
+                                  for k, v in sorted(d.items())}}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+@dataclasses.dataclass
+class Spec:
+    """A parsed, checked spec (see the module's docstring)."""
+
+    procedure: str
+    scenario: str | None
+    models: tuple
+    seeds: tuple
+    noise: bool
+    grid: dict
+    random: dict | None
+    tie: dict
+    cases: tuple
+    compare: str | None
+    large_dts: tuple
+    dt_s: float
+    signals: tuple
+    signal_dt_s: float
+    metrics: tuple | None
+    flows_m3_s: tuple | None
+    raw: dict
+    #: The nominal plant parameters (``name -> value``) every point starts from: the
+    #: client's, shipped with every batch, so that a worker never uses another config.
+    base: dict = dataclasses.field(default_factory=dict)
+
+    # --- the cases ------------------------------------------------------------------------
+
+    @property
+    def input_names(self) -> tuple:
+        """The plant names a row carries as inputs, in a fixed order."""
+        names = list(self.grid)
+        if self.random:
+            names += [n for n in self.random['ranges'] if n not in names]
+        for c in self.cases:
+            names += [n for n in c if n != 'seed' and n not in names]
+        names += [n for n in self.tie if n not in names]
+        return tuple(names)
+
+    def point_params(self, inputs: dict):
+        """The plant parameters of a point: the nominal ones with ``inputs`` (and the noise
+        switched off without ``noise``)."""
+        from eha_ros.physics.params import params_from_mapping
+        changes = dict(inputs)
+        if not self.noise:
+            changes['noise_std_a'] = 0.0
+        return params_from_mapping({**self.base, **changes}, source='sweep case')
+
+    def _input_sets(self):
+        """``(inputs, seed or None)`` of every point before seeds are crossed in."""
+        grid_names = list(self.grid)
+        grid = [dict(zip(grid_names, combo))
+                for combo in itertools.product(*(self.grid[n] for n in grid_names))]
+        draws = [{}]
+        if self.random:
+            r = self.random
+            names = sorted(r['ranges'])
+            draws = []
+            for i in range(r['n']):
+                rng = np.random.default_rng([r['seed'], i])
+                draws.append({n: float(rng.uniform(*r['ranges'][n])) for n in names})
+        out = [({**g, **d}, None) for g in grid for d in draws] if (self.grid or self.random) \
+            else []
+        for c in self.cases:
+            out.append(({k: v for k, v in c.items() if k != 'seed'}, c.get('seed')))
+        if not out:
+            out = [({}, None)]
+        return out
+
+    def case_models(self) -> list:
+        """``(model, dt_s)`` of the cases at a point."""
+        out = [(m, self.dt_s) for m in self.models]
+        if self.compare == 'yardstick' and self.large_dts:
+            from eha_ros.graph import DYNAMIC_MODELS
+            out += [(m, dt) for dt in self.large_dts for m in ('hf',) + self.models
+                    if m == 'hf' or m in DYNAMIC_MODELS]
+        return list(dict.fromkeys(out))
+
+    def points(self) -> list:
+        """Every point, in a fixed order (inputs, then seeds)."""
+        pts = []
+        variants = self.case_models()
+        for inputs, seed in self._input_sets():
+            for k in self.tie.items():
+                inputs[k[0]] = inputs[k[1]]
+            seeds = (seed,) if seed is not None else self.seeds
+            for s in seeds:
+                p = self.point_params(inputs)
+                cases = tuple(Case(case_id(self.procedure, self.scenario, m, dt, s, p), m, dt)
+                              for m, dt in variants)
+                pid = hashlib.sha256('.'.join(c.case_id for c in cases).encode()).hexdigest()
+                pts.append(Point(pid[:16], len(pts), dict(inputs), int(s), cases))
+        return pts
+
+    def canonical(self) -> dict:
+        """The spec as stored beside its dataset (what ``--resume`` must match)."""
+        return dict(sorted(self.raw.items()))
+
+
+def load_spec(path, max_cases: int = MAX_CASES) -> Spec:
+    """Read and check a YAML spec file."""
+    import yaml
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise SpecError(f'cannot read spec {path}: {exc.strerror}') from None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, 'problem_mark', None)
+        where = f' (line {mark.line + 1})' if mark is not None else ''
+        raise SpecError(f'spec {path} is not valid YAML{where}') from None
+    return parse_spec(raw, source=str(path), max_cases=max_cases)
+
+
+def _seeds(v, where):
+    if isinstance(v, bool):
+        raise SpecError(f'{where}: seeds = {v!r} must be a list of integers or a count')
+    if isinstance(v, int):
+        if v < 1:
+            raise SpecError(f'{where}: seeds = {v} must be at least 1')
+        return tuple(range(v))
+    if not isinstance(v, list) or not v or not all(
+            isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in v):
+        raise SpecError(f'{where}: seeds = {v!r} must be a list of non-negative integers or '
+                        'a count')
+    if len(set(v)) != len(v):
+        raise SpecError(f'{where}: seeds {v} repeat a seed')
+    return tuple(v)
+
+
+def _list_of_floats(name, v, where, positive=False):
+    if not isinstance(v, list) or not v:
+        raise SpecError(f'{where}: {name} must be a non-empty list')
+    out = tuple(_float(name, x, where) for x in v)
+    if positive and not all(x > 0 and math.isfinite(x) for x in out):
+        raise SpecError(f'{where}: {name} = {list(out)} must be positive')
+    return out
+
+
+def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: bool = True,
+               base: dict | None = None) -> Spec:
+    """Check a spec (a mapping, as from YAML) and build :class:`Spec`; every case's parameters
+    are checked against the plant's ranges and every model's validity (``check``: a worker
+    given a spec the client checked skips it).  ``base``: the nominal parameters
+    (default: ``config/eha_params.yaml``)."""
+    where = source
+    if not isinstance(raw, dict):
+        raise SpecError(f'{where}: a spec is a mapping of {", ".join(KEYS[:6])}, ...')
+    unknown = [k for k in raw if k not in KEYS]
+    if unknown:
+        raise SpecError(f'{where}: unknown key {unknown[0]!r} (one of {", ".join(KEYS)})')
+    procedure = raw.get('procedure')
+    if procedure not in PROCEDURES:
+        raise SpecError(f'{where}: procedure = {procedure!r} must be one of '
+                        f'{", ".join(PROCEDURES)}')
+    scenario = raw.get('scenario')
+    if procedure == 'scenario':
+        if scenario is None:
+            raise SpecError(f'{where}: procedure scenario needs a scenario (a name of '
+                            'config/scenarios.yaml)')
+        try:
+            get_scenario(str(scenario))
+        except (ParameterError, KeyError) as exc:
+            raise SpecError(f'{where}: {exc}') from None
+        scenario = str(scenario)
+    elif scenario is not None:
+        raise SpecError(f'{where}: scenario is only for procedure scenario, not {procedure}')
+    models = raw.get('models', ['hf'])
+    if isinstance(models, str):
+        models = [models]
+    if not isinstance(models, list) or not models \
+            or not all(isinstance(m, str) for m in models):
+        raise SpecError(f'{where}: models = {models!r} must be a list of model names')
+    if len(set(models)) != len(models):
+        raise SpecError(f'{where}: models {models} repeat a model')
+    from eha_ros.graph import MODELS
+    bad = [m for m in models if m not in MODELS]
+    if bad:
+        raise SpecError(f'{where}: unknown model {bad[0]!r} (one of {", ".join(MODELS)})')
+    if procedure == 'valve_test' and models != ['hf']:
+        raise SpecError(f'{where}: procedure valve_test runs the high-fidelity maps only '
+                        '(models: [hf])')
+    noise = raw.get('noise', False)
+    if not isinstance(noise, bool):
+        raise SpecError(f'{where}: noise = {noise!r} must be true or false')
+    if procedure == 'valve_test' and noise:
+        raise SpecError(f'{where}: procedure valve_test has no noise (its maps are the '
+                        'noise-free transients)')
+    seeds = _seeds(raw.get('seeds', [0]), where)
+    if not noise and len(seeds) > 1:
+        raise SpecError(f'{where}: {len(seeds)} seeds with noise: false would repeat every '
+                        'case (the seed only drives the noise)')
+    grid = {}
+    params = raw.get('parameters') or {}
+    if not isinstance(params, dict):
+        raise SpecError(f'{where}: parameters must map plant names to lists of values')
+    for name, values in params.items():
+        if not isinstance(values, list) or not values:
+            raise SpecError(f'{where}: parameters.{name} must be a non-empty list (a grid '
+                            'axis)')
+        grid[name] = tuple(_value(name, v, f'{where}: parameters') for v in values)
+        if len(set(grid[name])) != len(grid[name]):
+            raise SpecError(f'{where}: parameters.{name} repeats a value')
+    random = raw.get('random')
+    if random is not None:
+        if not isinstance(random, dict) or set(random) - {'n', 'seed', 'ranges'} \
+                or not {'n', 'ranges'} <= set(random):
+            raise SpecError(f'{where}: random must be {{n, seed, ranges: {{name: [lo, hi]}}}}')
+        n, rseed = random['n'], random.get('seed', 0)
+        if not isinstance(n, int) or isinstance(n, bool) or n < 1:
+            raise SpecError(f'{where}: random.n = {n!r} must be a positive integer')
+        if not isinstance(rseed, int) or isinstance(rseed, bool) or rseed < 0:
+            raise SpecError(f'{where}: random.seed = {rseed!r} must be a non-negative integer')
+        ranges = {}
+        if not isinstance(random['ranges'], dict) or not random['ranges']:
+            raise SpecError(f'{where}: random.ranges must map plant names to [lo, hi]')
+        for name, lohi in random['ranges'].items():
+            if not isinstance(lohi, list) or len(lohi) != 2:
+                raise SpecError(f'{where}: random.ranges.{name} must be [lo, hi]')
+            lo, hi = (_value(name, v, f'{where}: random.ranges') for v in lohi)
+            if isinstance(lo, str) or not lo < hi:
+                raise SpecError(f'{where}: random.ranges.{name} = [{lo}, {hi}] needs lo < hi')
+            if name in grid:
+                raise SpecError(f'{where}: {name} is both a grid axis and drawn at random')
+            ranges[name] = (lo, hi)
+        random = {'n': n, 'seed': rseed, 'ranges': ranges}
+    cases = []
+    for k, c in enumerate(raw.get('cases') or []):
+        if not isinstance(c, dict):
+            raise SpecError(f'{where}: cases[{k}] must map plant names (and seed) to values')
+        case = {}
+        for name, v in c.items():
+            if name == 'seed':
+                case['seed'] = _seeds([v], f'{where}: cases[{k}]')[0]
+            else:
+                case[name] = _value(name, v, f'{where}: cases[{k}]')
+        cases.append(case)
+    tie = raw.get('tie') or {}
+    if not isinstance(tie, dict):
+        raise SpecError(f'{where}: tie must map a plant name to the swept name it follows')
+    swept = set(grid) | set((random or {}).get('ranges', {})) | {
+        n for c in cases for n in c if n != 'seed'}
+    for name, src in tie.items():
+        if name not in SPEC_BY_NAME:
+            raise SpecError(f'{where}: tie: unknown parameter {name!r}')
+        if src not in swept:
+            raise SpecError(f'{where}: tie.{name} follows {src!r}, which is not swept')
+        if name in swept:
+            raise SpecError(f'{where}: tie.{name}: {name} is swept itself')
+    if not noise and 'noise_std_a' in swept:
+        raise SpecError(f'{where}: noise_std_a is swept but noise is false')
+    compare = raw.get('compare')
+    if compare not in (None, 'yardstick'):
+        raise SpecError(f'{where}: compare = {compare!r} must be yardstick (or absent)')
+    if compare and procedure != 'scenario':
+        raise SpecError(f'{where}: compare: yardstick is for procedure scenario')
+    large_dts = tuple(_list_of_floats('large_dts', raw['large_dts'], where, positive=True)) \
+        if raw.get('large_dts') is not None else ()
+    if large_dts and compare != 'yardstick':
+        raise SpecError(f'{where}: large_dts needs compare: yardstick')
+    dt_s = _float('dt_s', raw.get('dt_s', DT_S), where)
+    if not (dt_s > 0 and math.isfinite(dt_s)):
+        raise SpecError(f'{where}: dt_s = {dt_s} must be a positive step [s]')
+    if compare and dt_s != DT_S:
+        raise SpecError(f'{where}: compare: yardstick runs at dt_s = {DT_S:g} s')
+    from .procedures import PROCEDURE_CLASSES
+    proc = PROCEDURE_CLASSES[procedure]
+    signals = raw.get('signals') or []
+    if not isinstance(signals, list) or not all(isinstance(s, str) for s in signals):
+        raise SpecError(f'{where}: signals must be a list of signal names')
+    bad = [s for s in signals if s not in proc.SIGNALS]
+    if bad:
+        raise SpecError(f'{where}: unknown signal {bad[0]!r} for procedure {procedure} (one of '
+                        f'{", ".join(proc.SIGNALS)})')
+    signal_dt_s = _float('signal_dt_s', raw.get('signal_dt_s', 1e-3), where)
+    if not signal_dt_s > 0:
+        raise SpecError(f'{where}: signal_dt_s = {signal_dt_s} must be positive')
+    metrics = raw.get('metrics')
+    if metrics is not None:
+        if not isinstance(metrics, list) or not all(isinstance(m, str) for m in metrics):
+            raise SpecError(f'{where}: metrics must be a list of metric names')
+        known = proc.metric_names(compare)
+        bad = [m for m in metrics if m not in known]
+        if bad:
+            raise SpecError(f'{where}: unknown metric {bad[0]!r} for procedure {procedure} '
+                            f'(one of {", ".join(known)})')
+        metrics = tuple(metrics)
+    flows = raw.get('flows_m3_s')
+    if flows is not None:
+        if procedure != 'valve_test':
+            raise SpecError(f'{where}: flows_m3_s is for procedure valve_test')
+        flows = _list_of_floats('flows_m3_s', flows, where)
+    spec = Spec(procedure, scenario, tuple(models), seeds, noise, grid, random, dict(tie),
+                tuple(cases), compare, large_dts, dt_s, tuple(signals), signal_dt_s, metrics,
+                flows, dict(raw))
+    if base is None:
+        from eha_ros.physics import default_params
+        base = params_to_dict(default_params())
+    spec.base = dict(base)
+    if check:
+        _check_size(spec, where, max_cases)
+        proc.check(spec, where)
+    return spec
+
+
+def _check_size(spec: Spec, where: str, max_cases: int) -> None:
+    n_inputs = 1
+    for v in spec.grid.values():
+        n_inputs *= len(v)
+    if not spec.grid:
+        n_inputs = 0
+    if spec.random:
+        n_inputs = max(n_inputs, 1) * spec.random['n']
+    n_points = n_inputs * len(spec.seeds) + sum(
+        1 if 'seed' in c else len(spec.seeds) for c in spec.cases)
+    n = max(n_points, 1) * len(spec.case_models())
+    if n > max_cases:
+        raise SpecError(f'{where}: {n} cases exceed --max-cases {max_cases}')
