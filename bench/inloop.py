@@ -23,54 +23,17 @@ each process runs every model once before); ``bench/plant_rtf.py`` measures cost
 
 import argparse
 import json
-import multiprocessing
 import os
 import sys
+import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 
 os.environ.setdefault('NUMBA_NUM_THREADS', '1')
 
 from eha_ros.graph import MODELS, REFERENCE_SCENARIOS  # noqa: E402
-from eha_ros.physics import default_params  # noqa: E402
-from eha_ros.physics.params import replace  # noqa: E402
-from eha_ros.surrogates.registry import load_surrogate  # noqa: E402
-from eha_ros.evaluation import (CONTROLLER_PERIOD_S, DT_S, EXTRA_SCENARIOS,  # noqa
-                                WEAR_POINTS, largest_steps, noise_free, run,
-                                summarise, with_noise)
-
-_SURROGATES = {}
-
-
-def _warm_up(models):
-    """Load every model and compile its loop, so that costs exclude JIT compilation."""
-    base = default_params()
-    p0 = replace(base, noise_std_a=0.0)
-    for m in models:
-        _SURROGATES[m] = load_surrogate(m, base)
-        run(p0, 'step_0p1', _SURROGATES[m], dt=DT_S)
-    run(p0, 'step_0p1')
-
-
-def _task(task, job):
-    """One case: ``('noise_free', wear, scenario)`` or ``('noise', 'nominal', scenario)``."""
-    models, noise_models, large_dts, seeds = job
-    kind, wname, sc = task
-    base = default_params()
-    if kind == 'noise':
-        return with_noise(base, sc, {m: _SURROGATES[m] for m in noise_models}, seeds)
-    w = WEAR_POINTS[wname]
-    p = replace(base, noise_std_a=0.0)
-    if w is not None:
-        p = replace(p, overlap_supply_m=w[0], overlap_return_m=w[0], radial_clearance_m=w[1])
-    return noise_free(p, sc, {m: _SURROGATES[m] for m in models}, large_dts)
-
-
-def _progress(task, t0):
-    kind, wname, sc = task
-    label = f'{sc}/{wname}' if kind == 'noise_free' else f'noise {sc}'
-    print(f'inloop: {label} done at {time.perf_counter() - t0:.0f} s', file=sys.stderr,
-          flush=True)
+from eha_ros.evaluation import (CONTROLLER_PERIOD_S, DT_S, EXTRA_SCENARIOS,  # noqa: E402
+                                WEAR_POINTS, largest_steps, summarise)
+from eha_ros.sweep.comparison import run_comparison  # noqa: E402
 
 
 def main(argv=None):
@@ -87,7 +50,10 @@ def main(argv=None):
     ap.add_argument('--large-dts', default='2e-6,5e-6,1e-5',
                     help='also run hf and the dynamic surrogates at these steps [s] ("": none)')
     ap.add_argument('--jobs', type=int, default=1,
-                    help='worker processes (each case runs in one; costs stay per run)')
+                    help='sweep workers (a LocalCluster; 1: in this process)')
+    ap.add_argument('--data', default=None,
+                    help='keep the sweeps\' datasets here (resumed if present)')
+    ap.add_argument('--quiet', action='store_true', help='no progress bar')
     ap.add_argument('--out', default=None, help='also write the JSON here')
     args = ap.parse_args(argv)
     t0 = time.perf_counter()
@@ -116,36 +82,27 @@ def main(argv=None):
         wear = {w: WEAR_POINTS[w] for w in names}
     noise_models = ([m for m in models if m in args.noise_models.split(',')]
                     if not args.no_noise and args.seeds > 0 else [])
-    tasks = [('noise_free', wname, sc) for wname in wear for sc in scenarios]
-    tasks += [('noise', 'nominal', sc) for sc in scenarios if noise_models]
     result = {'benchmark': 'inloop', 'dt_s': DT_S, 'controller_period_s': CONTROLLER_PERIOD_S,
               'models': models, 'scenarios': scenarios, 'noise_models': noise_models,
               'seeds': args.seeds, 'jobs': args.jobs,
-              'wear': {k: v for k, v in wear.items()}, 'noise_free': {}, 'noise': {}}
-    job = (models, noise_models, large_dts, args.seeds)
-    done = {}
-    if args.jobs == 1:
-        _warm_up(models)
-        for task in tasks:
-            done[task] = _task(task, job)
-            _progress(task, t0)
-    else:
-        ctx = multiprocessing.get_context('spawn')
-        with ProcessPoolExecutor(args.jobs, mp_context=ctx, initializer=_warm_up,
-                                 initargs=(models,)) as pool:
-            futures = {pool.submit(_task, task, job): task for task in tasks}
-            for fut in as_completed(futures):
-                done[futures[fut]] = fut.result()
-                _progress(futures[fut], t0)
-    for task in tasks:  # in order, whatever order they finished in
-        kind, wname, sc = task
-        if kind == 'noise_free':
-            result['noise_free'][f'{sc}/{wname}'] = done[task]
-        else:
-            result['noise'][sc] = done[task]
+              'wear': {k: v for k, v in wear.items()}, 'noise_free': {}, 'noise': {},
+              'load_before': os.getloadavg()}
+    with tempfile.TemporaryDirectory(prefix='eha-inloop-') as tmp:
+        data = args.data or tmp
+        done = run_comparison(data, scenarios, wear, models, noise_models, args.seeds,
+                              large_dts, workers=args.jobs, in_process=args.jobs == 1,
+                              progress=not args.quiet)
+    for wname in wear:  # in order, whatever order they finished in
+        for sc in scenarios:
+            result['noise_free'][f'{sc}/{wname}'] = done['noise_free'][f'{sc}/{wname}']
+    for sc in scenarios:
+        if sc in done['noise']:
+            result['noise'][sc] = done['noise'][sc]
+    result['sweeps'] = done['sweeps']
     result['summary'] = summarise(result)
     result['largest_steps'] = largest_steps(result['summary'])
     result['wall_s'] = round(time.perf_counter() - t0, 1)
+    result['load_after'] = os.getloadavg()
     text = json.dumps(result)
     if args.out:
         with open(args.out, 'w') as f:

@@ -51,6 +51,9 @@ def schema(spec):
     proc = PROCEDURE_CLASSES[spec.procedure](spec)
     fields += [(n, types[t]) for n, t in proc.wanted()]
     fields += [(f'signal_{s}', pa.list_(pa.float64())) for s in spec.signals]
+    if spec.compare == 'yardstick' and not spec.noise:  # hf's row: its yardstick's envelope
+        fields += [(f'signal_{s}_yardstick_{e}', pa.list_(pa.float64()))
+                   for s in spec.signals for e in ('lo', 'hi')]
     fields += [('wall_s', pa.float64()), ('wall_point_s', pa.float64()),
                ('wall_cost_s_per_s', pa.float64()), ('worker', pa.string())]
     return pa.schema(fields)

@@ -76,21 +76,15 @@ def run_batch(raw: dict, base: dict, points: list) -> list:
     for pt in points:
         for row in proc.run_point(pt):
             row.update(point_id=pt.point_id, seed=pt.seed, procedure=spec.procedure,
-                       scenario=spec.scenario, noise=spec.noise, worker=worker, **pt.inputs)
+                       scenario=pt.scenario, noise=spec.noise, worker=worker, **pt.inputs)
             rows.append(row)
     return rows
 
 
 def warm_up(raw: dict, base: dict) -> str:
-    """Load every model of the spec and compile its kernels (run the spec's first point), so
-    that timing columns leave JIT compilation out."""
-    proc = _procedure(raw, base)
-    spec = proc.spec
-    pts = spec.points()[:1]
-    for m in spec.models:
-        proc.model(m)
-    if pts:
-        proc.run_point(pts[0])
+    """Load every model of the spec and compile its kernels, so that timing columns leave
+    JIT compilation out."""
+    _procedure(raw, base).warm_up()
     return _worker_name()
 
 
@@ -179,25 +173,28 @@ def _client(workers: int, scheduler: str | None):
             return Client(scheduler, timeout='10s'), None
         except (OSError, TimeoutError) as exc:
             raise SweepError(f'--scheduler {scheduler}: cannot connect ({exc})') from None
-    dashboard = ':0' if _has_bokeh() else None
     # single-threaded workers: numba and BLAS pools of one thread in each process
     for var in ('NUMBA_NUM_THREADS', 'OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS',
                 'MKL_NUM_THREADS'):
         os.environ.setdefault(var, '1')
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=dashboard, silence_logs=40)
+                           dashboard_address=':0', silence_logs=40)
     return Client(cluster), cluster
 
 
 def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None = None,
               in_process: bool = False, resume: bool = False, batch_size: int | None = None,
-              progress: bool | Progress = True, warm: bool = False, log=None) -> dict:
+              progress: bool | Progress = True, warm: bool = False, log=None,
+              client=None) -> dict:
     """Run every case of ``spec`` not yet in ``out``; returns the summary (counts, wall time,
     engine).  Raises :class:`SweepInterrupted` on Ctrl-C, with every finished batch on disk.
 
     ``workers``: LocalCluster size (default: the cores of this machine); ``scheduler``: an
-    existing cluster instead; ``in_process``: no Dask.  ``warm``: compile and load every model
-    on every worker before the cases (timing columns without JIT).
+    existing cluster instead; ``client``: a connected ``distributed.Client`` to use (left
+    open); ``in_process``: no Dask.  A LocalCluster starts its workers as fresh processes
+    (spawn), which import the calling script's main module again: a script that calls this
+    must do so under ``if __name__ == '__main__':``, as with :mod:`multiprocessing`.  ``warm``: compile and load every model on every worker
+    before the cases (timing columns without JIT).
     """
     log = log or (lambda text: print(text, file=sys.stderr, flush=True))
     out = Path(out)
@@ -213,8 +210,12 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
         raise SweepError(f'--workers {workers} must be at least 1')
     size = batch_size or default_batch_size(len(todo), 1 if in_process else workers)
     batches = [todo[i:i + size] for i in range(0, len(todo), size)]
-    engine = 'in-process' if in_process else (f'scheduler {scheduler}' if scheduler
-                                              else f'LocalCluster of {workers} workers')
+    if client is not None:
+        engine = f'client {client.scheduler.address}'
+    elif in_process:
+        engine = 'in-process'
+    else:
+        engine = f'scheduler {scheduler}' if scheduler else f'LocalCluster of {workers} workers'
     summary = {'out': str(out), 'cases': n_cases, 'points': len(points),
                'already_done': n_cases - n_todo, 'ran': 0, 'ok': 0, 'diverged': 0, 'error': 0,
                'batches': len(batches), 'batch_size': size, 'engine': engine,
@@ -228,7 +229,6 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
         rows = [r for r in rows if r['case_id'] not in done]
         for r in rows:  # rows a worker never made (KilledWorker) lack the point's fields
             r.setdefault('procedure', spec.procedure)
-            r.setdefault('scenario', spec.scenario)
             r.setdefault('noise', spec.noise)
         write_batch(out, rows, sch, batch[0].index)
         for r in rows:
@@ -237,7 +237,7 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
         if bar is not None:
             bar.update(rows)
 
-    client = cluster = None
+    own, cluster = client is None, None
     try:
         if in_process:
             if warm and batches:
@@ -245,7 +245,8 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
             for b in batches:
                 finished(b, run_batch(raw, base, b))
         elif batches:
-            client, cluster = _client(workers, scheduler)
+            if own:
+                client, cluster = _client(workers, scheduler)
             if _has_bokeh():
                 log(f'eha-sweep: dashboard {client.dashboard_link}')
             if warm:
@@ -256,11 +257,13 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
         summary['wall_s'] = round(time.monotonic() - t0, 3)
         if bar is not None and bar.tty:
             print(file=bar.stream)
-        _close(client, cluster)
+        if own:
+            _close(client, cluster)
         if isinstance(exc, KeyboardInterrupt):
             raise SweepInterrupted(summary) from None
         raise
-    _close(client, cluster)
+    if own:
+        _close(client, cluster)
     summary['wall_s'] = round(time.monotonic() - t0, 3)
     summary['files'] = len(parts(out))
     return summary
@@ -283,7 +286,8 @@ def _run_dask(client, raw, base, batches, finished) -> None:
                 rows = fut.result()
             except KilledWorker as exc:  # the batch killed every worker it ran on
                 rows = [{'case_id': c.case_id, 'point_id': p.point_id, 'model': c.model,
-                         'dt_s': c.dt_s, 'seed': p.seed, 'status': 'error',
+                         'dt_s': c.dt_s, 'seed': p.seed, 'scenario': p.scenario,
+                         'status': 'error',
                          'error': f'KilledWorker: {exc}', **p.inputs}
                         for p in b for c in p.cases]
             finished(b, rows)

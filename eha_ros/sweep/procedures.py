@@ -52,6 +52,8 @@ class Procedure:
     SIGNALS: tuple = ()
     #: Interval [s] the signals are recorded at (``signal_dt_s`` a whole multiple of it).
     RECORD_DT_S = CONTROLLER_PERIOD_S
+    #: Whether the procedure runs in ticks of ``RECORD_DT_S`` (a whole number of steps).
+    TICKED = True
 
     def __init__(self, spec):
         self.spec = spec
@@ -76,6 +78,11 @@ class Procedure:
     def check(cls, spec, where: str) -> None:
         """Every point's parameters within the plant's ranges and every model's validity."""
         from eha_ros.physics.stability import check_dt
+        for _, dt in spec.case_models():
+            n = cls.RECORD_DT_S / dt
+            if cls.TICKED and abs(n - round(n)) > 1e-9 * n:
+                raise _spec_error(f'{where}: dt_s = {dt:g} s: the tick of {cls.RECORD_DT_S:g} s '
+                                  'must be a whole multiple of the step')
         every = spec.signal_dt_s / cls.RECORD_DT_S
         if spec.signals and abs(every - round(every)) > 1e-9 * every:
             raise _spec_error(f'{where}: signal_dt_s = {spec.signal_dt_s:g} s must be a whole '
@@ -87,21 +94,18 @@ class Procedure:
                 models[m] = proc.model(m)
             except (ValueError, OSError) as exc:
                 raise _spec_error(f'{where}: model {m}: {exc}') from None
-        for inputs, _ in spec._input_sets():
-            for k, v in spec.tie.items():
-                inputs[k] = inputs[v]
-            label = ', '.join(f'{k}={v:g}' if isinstance(v, float) else f'{k}={v}'
-                              for k, v in inputs.items()) or 'nominal'
+        for pt in spec.points():
             try:
-                p = spec.point_params(inputs)
-                for m, dt in spec.case_models():
-                    s = models.get(m)
+                p = pt.params(spec)
+                for c in pt.cases:
+                    s = models.get(c.model)
                     if s is not None:
                         s.check_params(p)
                     if cls is ScenarioProcedure:
-                        check_dt(p, dt, s)
+                        check_dt(p, c.dt_s, s)
             except ValueError as exc:
-                raise _spec_error(f'{where}: case {label}: {exc}') from None
+                from .spec import _label
+                raise _spec_error(f'{where}: case {_label(pt.inputs)}: {exc}') from None
 
     def model(self, name):
         """The fluid block of model ``name`` (``None`` for hf), loaded once."""
@@ -120,6 +124,13 @@ class Procedure:
 
     def run_point(self, point) -> list:
         raise NotImplementedError
+
+    def warm_up(self) -> None:
+        """Load every model and compile its kernels (a short run each)."""
+        from eha_ros.physics import Plant
+        p = self.spec.point_params({})
+        for m in self.spec.models:
+            Plant(p, dt_s=self.spec.dt_s, fluid=self.model(m)).advance(0.0, 100)
 
 
 def _spec_error(text):
@@ -162,7 +173,7 @@ class ScenarioProcedure(Procedure):
             if self.spec.noise:
                 return self._yardstick_noise(point)
             return self._yardstick(point)
-        sc = self.spec.scenario
+        sc = point.scenario
         t0 = time.perf_counter()
         rows = {}
         ref = None
@@ -199,6 +210,14 @@ class ScenarioProcedure(Procedure):
             row['wall_point_s'] = wall
         return [rows[c.case_id] for c in point.cases]
 
+    def warm_up(self) -> None:
+        from eha_ros.physics import simulate
+        p = self.spec.point_params({})
+        for m in self.spec.models:
+            simulate(p, self.spec.scenarios[0], duration_s=0.01, dt_s=self.spec.dt_s,
+                     controller_period_s=CONTROLLER_PERIOD_S, record_dt_s=None,
+                     fluid=self.model(m))
+
     def _row(self, case, metrics, status, error=None, signals=None) -> dict:
         return {'case_id': case.case_id, 'model': case.model, 'dt_s': case.dt_s,
                 'status': status, 'error': error, **metrics, **(signals or {})}
@@ -209,7 +228,8 @@ class ScenarioProcedure(Procedure):
         try:
             p = point.params(self.spec)
             sur = {m: self.model(m) for m in self.spec.models if m != 'hf'}
-            out = noise_free(p, self.spec.scenario, sur, self.spec.large_dts)
+            out = noise_free(p, point.scenario, sur, self.spec.large_dts,
+                             keep_runs=bool(self.spec.signals))
         except Exception as exc:
             return [self._row(c, {}, *_status(exc)) for c in point.cases]
         wall = time.perf_counter() - t0
@@ -217,12 +237,16 @@ class ScenarioProcedure(Procedure):
                   'yardstick_p12': out['yardstick']['p12'],
                   'bound_jack': out['bound']['jack'], 'bound_p12': out['bound']['p12'],
                   **{f'spread_{f}': v for f, v in out['feature_spread'].items()}}
-        duration = self._duration()
+        duration = self._duration(point.scenario)
+        runs = out.get('runs', {})
         rows = []
         for c in point.cases:
             if c.model == 'hf' and c.dt_s == self.spec.dt_s:
-                row = self._row(c, {**out['hf_features'], **common}, 'ok')
+                row = self._row(c, {**out['hf_features'], **common}, 'ok', None,
+                                self._signals(runs['hf'].data) if runs else None)
                 row['wall_cost_s_per_s'] = out['hf_cost_s_per_s']
+                if runs:
+                    row.update(self._envelope([runs[k] for k in out['yardstick']['runs']]))
             else:
                 key = c.model if c.dt_s == self.spec.dt_s else f'{c.model}@dt={c.dt_s:g}'
                 r = out['models'][key]
@@ -233,7 +257,8 @@ class ScenarioProcedure(Procedure):
                 else:
                     row = self._row(c, {**r['features'], 'jack_rel_error': r['jack'],
                                         'p12_rel_error': r['p12'], **common,
-                                        'meets_bounds': r['meets']}, 'ok')
+                                        'meets_bounds': r['meets']}, 'ok', None,
+                                    self._signals(runs[key].data) if runs else None)
                     row['wall_cost_s_per_s'] = r['cost_s_per_s']
             if row.get('wall_cost_s_per_s') is not None:
                 row['wall_s'] = row['wall_cost_s_per_s'] * duration
@@ -241,13 +266,23 @@ class ScenarioProcedure(Procedure):
             rows.append(row)
         return rows
 
-    def _duration(self) -> float:
+    def _envelope(self, runs) -> dict:
+        """Per kept signal, the smallest and largest value of hf's yardstick runs."""
+        out = {}
+        for name in self.spec.signals:
+            sig = [self._signals(r.data)[f'signal_{name}'] for r in runs]
+            out[f'signal_{name}_yardstick_lo'] = np.min(sig, axis=0).tolist()
+            out[f'signal_{name}_yardstick_hi'] = np.max(sig, axis=0).tolist()
+        return out
+
+    @staticmethod
+    def _duration(scenario) -> float:
         from eha_ros.physics import get_scenario
-        return float(get_scenario(self.spec.scenario).duration_s)
+        return float(get_scenario(scenario).duration_s)
 
     def _yardstick_noise(self, point) -> list:
         """hf at seed k, k + 1 and with Cd + 0.1 %; each model at seed k against hf at k."""
-        sc, k = self.spec.scenario, point.seed
+        sc, k = point.scenario, point.seed
         t0 = time.perf_counter()
         try:
             p = point.params(self.spec)
@@ -282,7 +317,7 @@ class ScenarioProcedure(Procedure):
         wall = time.perf_counter() - t0
         for row in rows:
             row['wall_point_s'] = wall
-            row['wall_cost_s_per_s'] = row['wall_s'] / self._duration()
+            row['wall_cost_s_per_s'] = row['wall_s'] / self._duration(sc)
         return rows
 
 
@@ -309,6 +344,12 @@ class PreflightProcedure(Procedure):
                 load_faults()
             except ValueError as exc:
                 raise _spec_error(f'{where}: {exc}') from None
+
+    def warm_up(self) -> None:
+        super().warm_up()
+        if any(m.startswith(('est_', 'std_')) for m, _ in self.wanted()):
+            from eha_ros.health.preflight import load_faults
+            load_faults()
 
     def _signals(self, arrays: dict) -> dict:
         out = {}
@@ -368,6 +409,7 @@ class ValveTestProcedure(Procedure):
 
     SIGNALS = ('p12_pa',)
     RECORD_DT_S = 1.0
+    TICKED = False
 
     @classmethod
     def metrics(cls, compare=None) -> tuple:
@@ -387,6 +429,12 @@ class ValveTestProcedure(Procedure):
             load_diagnostic()
         except ValueError as exc:
             raise _spec_error(f'{where}: {exc}') from None
+
+    def warm_up(self) -> None:
+        from eha_ros.health.valve_test import load_diagnostic
+        from eha_ros.physics.maps import transient_map
+        load_diagnostic()
+        transient_map([0.0], self.flows()[0], params=self.spec.point_params({}))
 
     def flows(self) -> tuple:
         if self.spec.flows_m3_s:

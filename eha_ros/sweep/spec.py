@@ -3,7 +3,7 @@
 The YAML form (README, "Sweeps")::
 
     procedure: scenario            # scenario | preflight_check | valve_test
-    scenario: sine_0p01_2pi        # a name of config/scenarios.yaml (procedure scenario)
+    scenario: sine_0p01_2pi        # a name of config/scenarios.yaml, or a list (an axis)
     models: [hf, dlut]             # hf and any shipped surrogate
     seeds: [0]                     # noise seeds (or an integer n: seeds 0 .. n-1)
     noise: false                   # false: torque-motor noise off (noise_std_a = 0)
@@ -72,13 +72,15 @@ class Case:
 
 @dataclasses.dataclass(frozen=True)
 class Point:
-    """One parameter set and seed; ``inputs`` are the swept plant names and their values."""
+    """One parameter set and seed (and scenario); ``inputs`` are the swept plant names and
+    their values."""
 
     point_id: str
     index: int
     inputs: dict
     seed: int
     cases: tuple
+    scenario: str | None = None
 
     def params(self, spec: 'Spec'):
         return spec.point_params(self.inputs)
@@ -125,7 +127,7 @@ class Spec:
     """A parsed, checked spec (see the module's docstring)."""
 
     procedure: str
-    scenario: str | None
+    scenarios: tuple
     models: tuple
     seeds: tuple
     noise: bool
@@ -144,6 +146,8 @@ class Spec:
     #: The nominal plant parameters (``name -> value``) every point starts from: the
     #: client's, shipped with every batch, so that a worker never uses another config.
     base: dict = dataclasses.field(default_factory=dict)
+    source: str = 'spec'
+    _points: list | None = dataclasses.field(default=None, repr=False)
 
     # --- the cases ------------------------------------------------------------------------
 
@@ -198,24 +202,43 @@ class Spec:
         return list(dict.fromkeys(out))
 
     def points(self) -> list:
-        """Every point, in a fixed order (inputs, then seeds)."""
-        pts = []
+        """Every point, in a fixed order (inputs, then seeds); computed once."""
+        if self._points is not None:
+            return self._points
+        pts, seen = [], {}
         variants = self.case_models()
-        for inputs, seed in self._input_sets():
-            for k in self.tie.items():
-                inputs[k[0]] = inputs[k[1]]
-            seeds = (seed,) if seed is not None else self.seeds
-            for s in seeds:
-                p = self.point_params(inputs)
-                cases = tuple(Case(case_id(self.procedure, self.scenario, m, dt, s, p), m, dt)
-                              for m, dt in variants)
-                pid = hashlib.sha256('.'.join(c.case_id for c in cases).encode()).hexdigest()
-                pts.append(Point(pid[:16], len(pts), dict(inputs), int(s), cases))
+        sets = self._input_sets()
+        params = []
+        for inputs, seed in sets:
+            for name, src in self.tie.items():
+                inputs[name] = inputs[src]
+            try:
+                params.append(self.point_params(inputs))
+            except ParameterError as exc:
+                raise SpecError(f'{self.source}: case {_label(inputs)}: {exc}') from None
+        for sc in self.scenarios:
+            for (inputs, seed), p in zip(sets, params):
+                for s in ((seed,) if seed is not None else self.seeds):
+                    cases = tuple(Case(case_id(self.procedure, sc, m, dt, s, p), m, dt)
+                                  for m, dt in variants)
+                    pid = hashlib.sha256('.'.join(c.case_id for c in cases).encode()
+                                         ).hexdigest()
+                    if pid in seen:
+                        raise SpecError(f'{self.source}: case {_label(inputs)}, seed {s} '
+                                        f'repeats point {seen[pid]} (every case runs once)')
+                    seen[pid] = len(pts)
+                    pts.append(Point(pid[:16], len(pts), dict(inputs), int(s), cases, sc))
+        self._points = pts
         return pts
 
     def canonical(self) -> dict:
         """The spec as stored beside its dataset (what ``--resume`` must match)."""
         return dict(sorted(self.raw.items()))
+
+
+def _label(inputs: dict) -> str:
+    return ', '.join(f'{k}={v:g}' if isinstance(v, float) else f'{k}={v}'
+                     for k, v in inputs.items()) or 'nominal'
 
 
 def load_spec(path, max_cases: int = MAX_CASES) -> Spec:
@@ -277,15 +300,22 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
         raise SpecError(f'{where}: procedure = {procedure!r} must be one of '
                         f'{", ".join(PROCEDURES)}')
     scenario = raw.get('scenario')
+    scenarios = (None,)
     if procedure == 'scenario':
         if scenario is None:
             raise SpecError(f'{where}: procedure scenario needs a scenario (a name of '
                             'config/scenarios.yaml)')
-        try:
-            get_scenario(str(scenario))
-        except (ParameterError, KeyError) as exc:
-            raise SpecError(f'{where}: {exc}') from None
-        scenario = str(scenario)
+        scenarios = tuple(scenario) if isinstance(scenario, list) else (scenario,)
+        if not scenarios or not all(isinstance(s, str) for s in scenarios):
+            raise SpecError(f'{where}: scenario = {scenario!r} must be a scenario name or a '
+                            'list of them')
+        if len(set(scenarios)) != len(scenarios):
+            raise SpecError(f'{where}: scenario {list(scenarios)} repeats a scenario')
+        for sc in scenarios:
+            try:
+                get_scenario(sc)
+            except (ParameterError, KeyError) as exc:
+                raise SpecError(f'{where}: {exc}') from None
     elif scenario is not None:
         raise SpecError(f'{where}: scenario is only for procedure scenario, not {procedure}')
     models = raw.get('models', ['hf'])
@@ -413,13 +443,14 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
         if procedure != 'valve_test':
             raise SpecError(f'{where}: flows_m3_s is for procedure valve_test')
         flows = _list_of_floats('flows_m3_s', flows, where)
-    spec = Spec(procedure, scenario, tuple(models), seeds, noise, grid, random, dict(tie),
+    spec = Spec(procedure, scenarios, tuple(models), seeds, noise, grid, random, dict(tie),
                 tuple(cases), compare, large_dts, dt_s, tuple(signals), signal_dt_s, metrics,
                 flows, dict(raw))
     if base is None:
         from eha_ros.physics import default_params
         base = params_to_dict(default_params())
     spec.base = dict(base)
+    spec.source = where
     if check:
         _check_size(spec, where, max_cases)
         proc.check(spec, where)
@@ -436,6 +467,6 @@ def _check_size(spec: Spec, where: str, max_cases: int) -> None:
         n_inputs = max(n_inputs, 1) * spec.random['n']
     n_points = n_inputs * len(spec.seeds) + sum(
         1 if 'seed' in c else len(spec.seeds) for c in spec.cases)
-    n = max(n_points, 1) * len(spec.case_models())
+    n = max(n_points, 1) * len(spec.case_models()) * len(spec.scenarios)
     if n > max_cases:
         raise SpecError(f'{where}: {n} cases exceed --max-cases {max_cases}')

@@ -14,7 +14,9 @@ family and the reference's algebraic ``lut``, ``ga``, ``nn``, ``nn2``) is made p
 (:mod:`eha_ros.evaluation`), where noise and perturbations can be controlled: noise off
 against the yardstick (hf at half the step and with the discharge coefficient within +-0.1 %), and
 with noise over ``--seeds`` seeds against hf's own seed-to-seed spread; plots in
-``comparison/`` show the yardstick runs beside the models.
+``comparison/`` show the yardstick's band beside the models.  The comparison runs as two
+sweeps (:mod:`eha_ros.sweep.comparison`), in its own process while the graph runs; their
+datasets stay in ``comparison/sweeps/`` (``eha-sweep report`` reads them).
 
 The health monitor runs live in every run: its ``/eha/health`` and ``/diagnostics`` are
 recorded with the rest, and the report's verdicts are the recorded ones; each recording is
@@ -201,60 +203,62 @@ def _finish_comparison(proc, folder: Path) -> dict:
     return json.loads(path.read_text())
 
 
+#: Signals the comparison keeps per run for its plots (every controller tick).
+COMPARISON_SIGNALS = ('time_s', 'command_m', 'jack_position_m', 'p12_pa')
+
+
 def _compare(folder: Path, scenarios, models, seeds, progress, seed_models=None) -> dict:
     """Physics-only comparison of ``models`` with hf (:mod:`eha_ros.evaluation`), noise
     off against the yardstick and, for ``seed_models`` (default all), with noise over
-    ``seeds`` seeds; one plot per scenario."""
+    ``seeds`` seeds, run as two sweeps in this process (:mod:`eha_ros.sweep.comparison`:
+    their datasets in ``folder/sweeps``); one plot per scenario."""
     if not models:
         return {}
-    from eha_ros.physics import load_params
-    from eha_ros.physics.params import replace
-    from eha_ros.surrogates.registry import load_surrogate
-    from eha_ros.evaluation import noise_free, summarise, with_noise
+    from eha_ros.evaluation import summarise
+    from eha_ros.sweep.comparison import run_comparison
     folder.mkdir(exist_ok=True)
-    base = load_params()
-    sur = {m: load_surrogate(m, base) for m in models}
-    p0 = replace(base, noise_std_a=0.0)
-    res = {'models': list(models), 'seeds': int(seeds), 'noise_free': {}, 'noise': {}}
+    seeded = [m for m in models if seed_models is None or m in seed_models]
     t0 = time.monotonic()
+    done = run_comparison(folder / 'sweeps', scenarios, {'nominal': None}, models,
+                          seeded if seeds > 0 else (), seeds, signals=COMPARISON_SIGNALS,
+                          in_process=True, warm=False, progress=False)
+    res = {'models': list(models), 'seeds': int(seeds), 'noise_free': {}, 'noise': {}}
     for sc in scenarios:
-        r = noise_free(p0, sc, sur, keep_runs=True)
-        _plot_comparison(r.pop('runs'), folder / f'{sc}.png', sc, r)
+        r = done['noise_free'][f'{sc}/nominal']
+        _plot_comparison(r.pop('signals'), folder / f'{sc}.png', sc, r)
         res['noise_free'][sc] = r
-        seeded = {m: s for m, s in sur.items() if seed_models is None or m in seed_models}
-        if seeds > 0 and seeded:
-            res['noise'][sc] = with_noise(base, sc, seeded, seeds)
-        progress(f'comparison {sc:15s} {len(models)} models, noise off and {seeds} seeds, '
-                 f'{time.monotonic() - t0:5.1f} s')
+        if sc in done['noise']:
+            res['noise'][sc] = done['noise'][sc]
+    n = sum(s['cases'] for s in done['sweeps'].values())
+    progress(f'comparison: {len(scenarios)} scenarios, {len(models)} models, noise off and '
+             f'{seeds} seeds: {n} cases in {time.monotonic() - t0:5.1f} s')
     res['summary'] = summarise(res)
     return res
 
 
-def _plot_comparison(runs, path: Path, scenario, result) -> None:
+def _plot_comparison(signals, path: Path, scenario, result) -> None:
+    """hf, the band of its yardstick runs (half the step, Cd within +-0.1 %) and every model:
+    ``signals[model][name]`` as the sweep keeps them."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(2, 1, figsize=(9, 6.5), sharex=True)
-    yard = set(result['yardstick']['runs'])  # hf at half the step, hf with Cd changed
+    hf = signals['hf']
+    t = hf['time_s']
     for ax, key, scale, unit in ((axes[0], 'jack_position_m', 1e3, 'mm'),
                                  (axes[1], 'p12_pa', 1e-6, 'MPa')):
-        hf = runs['hf']
-        first = True
-        for name, r in runs.items():
-            if name in yard:
-                ax.plot(r.t, r[key] * scale, color='0.6', lw=3, alpha=0.6,
-                        label='hf yardstick (dt/2, Cd within +-0.1 %)' if first else None)
-                first = False
-        ax.plot(hf.t, hf[key] * scale, color='k', lw=1.2, label='hf')
-        for name, r in runs.items():
-            if name == 'hf' or name in yard or '@' in name:
+        ax.fill_between(t, hf[f'{key}_yardstick_lo'] * scale, hf[f'{key}_yardstick_hi'] * scale,
+                        color='0.6', alpha=0.6, lw=2.5,
+                        label='hf yardstick (dt/2, Cd within +-0.1 %)')
+        ax.plot(t, hf[key] * scale, color='k', lw=1.2, label='hf')
+        for name, sig in signals.items():
+            if name == 'hf':
                 continue
-            ax.plot(r.t, r[key] * scale, lw=0.9, ls='-' if name in DYNAMIC_MODELS else '--',
-                    label=name)
+            ax.plot(sig['time_s'], sig[key] * scale, lw=0.9,
+                    ls='-' if name in DYNAMIC_MODELS else '--', label=name)
         ax.set_ylabel(f'{key.replace("_m", "").replace("_pa", "")} [{unit}]')
         ax.grid(alpha=0.3)
-    axes[0].plot(runs['hf'].t, runs['hf']['command_m'] * 1e3, color='k', ls=':', lw=0.8,
-                 label='command')
+    axes[0].plot(t, hf['command_m'] * 1e3, color='k', ls=':', lw=0.8, label='command')
     axes[0].legend(fontsize=7, ncol=3)
     axes[1].set_xlabel('time [s]')
     y = result['yardstick']
@@ -333,8 +337,9 @@ def _comparison_report(c) -> list:
                      f'{r["cases_all_features_within_spread"]} / '
                      f'{r["cases_all_features_within_2x_spread"]} of {r["cases"]} | {noise} | '
                      f'{cost} |')
-    lines += ['', 'Plots: `comparison/<scenario>.png` (hf, the yardstick runs in grey, every '
-              'model).', '']
+    lines += ['', 'Plots: `comparison/<scenario>.png` (hf, the band of its yardstick runs in '
+              'grey, every model). Every case: `comparison/sweeps/` (Parquet, one row per '
+              'case; `eha-sweep report comparison/sweeps/noise_free`).', '']
     return lines
 
 

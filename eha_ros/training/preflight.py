@@ -10,8 +10,9 @@ Data (:func:`generate`)
     nominal ratio.  Training, validation and the benchmark's test cases come from different
     streams.
 
-Build: ``nice python -m eha_ros.training.preflight`` (data about 4 min on 2 cores, training a
-few minutes) writes ``faults.npz``.
+The 3,000 checks run as a sweep (:mod:`eha_ros.sweep`, one single-threaded worker process per
+core).  Build: ``nice python -m eha_ros.training.preflight`` (data about 4 min on 2 cores,
+training a few minutes) writes ``faults.npz``.
 """
 
 from __future__ import annotations
@@ -22,14 +23,15 @@ from pathlib import Path
 import numpy as np
 
 from eha_ros.artefacts import models_dir, save_artefact
-from eha_ros.health.preflight import (_BY_NAME, FAULT_NAMES, FAULTS, FAULTS_FILE, FaultModel,
-                                      preflight_features)
+from eha_ros.health.preflight import (_BY_NAME, FAULT_NAMES, FAULTS, FAULTS_FILE,
+                                      FaultModel)
 from eha_ros.physics import PlantParams, default_params
 from eha_ros.physics.maps import fluid_hash
 from eha_ros.physics.params import replace
 
-__all__ = ['FAULT_SETTINGS', 'draw_wear', 'apply_wear', 'cases', 'combination_cases',
-           'generate', 'train_faults', 'calibrate', 'recalibrate', 'build_artefact']
+__all__ = ['FAULT_SETTINGS', 'draw_wear', 'apply_wear', 'wear_changes', 'cases',
+           'combination_cases', 'data_sets', 'generate', 'generate_sets', 'train_faults',
+           'calibrate', 'recalibrate', 'build_artefact']
 
 #: Dynamic friction over breakaway friction for the drawn cases (the parameters' nominal).
 FRICTION_RATIO = 0.5
@@ -57,20 +59,7 @@ def draw_wear(rng: np.random.Generator, sparse: bool, p_degrade: float = 0.3) ->
 def apply_wear(params: PlantParams, wear: dict) -> PlantParams:
     """``params`` with the faults of ``wear`` (names of :data:`FAULTS`; frictions set their
     dynamic values at :data:`FRICTION_RATIO`, the overlap both edges)."""
-    w = dict(wear)
-    if 'overlap_supply_m' in w:
-        w['overlap_return_m'] = w['overlap_supply_m']
-    for part in ('spool', 'jack'):
-        key = f'{part}_static_friction_n'
-        if key in w:
-            w[f'{part}_dynamic_friction_n'] = FRICTION_RATIO * w[key]
-    return replace(params, **w)
-
-
-def _one_case(args):
-    from eha_ros.physics.maintenance import run_preflight
-    params, wear, seed = args
-    return preflight_features(run_preflight(apply_wear(params, wear), seed=seed))
+    return replace(params, **wear_changes(wear))
 
 
 def cases(n: int, stream: int, p_degrade: float = 0.3):
@@ -102,25 +91,65 @@ def combination_cases(n: int, stream: int):
     return out
 
 
+def wear_changes(wear: dict) -> dict:
+    """The plant parameters :func:`apply_wear` sets for ``wear`` (names and values)."""
+    w = dict(wear)
+    if 'overlap_supply_m' in w:
+        w['overlap_return_m'] = w['overlap_supply_m']
+    for part in ('spool', 'jack'):
+        key = f'{part}_static_friction_n'
+        if key in w:
+            w[f'{part}_dynamic_friction_n'] = FRICTION_RATIO * w[key]
+    return w
+
+
 def generate(case_list, params: PlantParams | None = None, workers: int = 2,
-             progress=None) -> tuple[np.ndarray, np.ndarray]:
+             progress=None, out=None) -> tuple[np.ndarray, np.ndarray]:
     """Features ``(n, 770)`` and targets ``(n, len(FAULTS))`` of the pre-flight check on the
-    high-fidelity plant for ``case_list`` (from :func:`cases`)."""
+    high-fidelity plant for ``case_list`` (from :func:`cases`); see :func:`generate_sets`."""
+    return generate_sets({'cases': case_list}, params, workers, progress, out)['cases']
+
+
+def generate_sets(sets: dict, params: PlantParams | None = None, workers: int = 2,
+                  progress=None, out=None) -> dict:
+    """``{name: (features, targets)}`` for ``{name: case_list}``: every case of every set run
+    as one sweep (:mod:`eha_ros.sweep`: ``workers`` single-threaded processes, in this
+    process for one; one cluster, each worker compiling the plant once).  ``out``: the
+    sweep's dataset folder, kept and resumed if it holds these cases; a temporary one
+    otherwise.  ``progress``: show the sweep's progress bar."""
+    import tempfile
+
+    from eha_ros.physics import params_to_dict
+    from eha_ros.sweep import SweepError, parse_spec, read_dataset, run_sweep
     p = params if params is not None else default_params()
-    jobs = [(p, w, s) for w, s in case_list]
-    if workers > 1 and len(jobs) > 1:
-        import multiprocessing as mp
-        first = _one_case(jobs[0])  # compile here once, not in every worker
-        with mp.get_context('fork').Pool(workers) as pool:
-            feats = [first]
-            for k, f in enumerate(pool.imap(_one_case, jobs[1:], chunksize=8), start=1):
-                feats.append(f)
-                if progress and (k + 1) % 200 == 0:
-                    progress(f'{k + 1}/{len(jobs)} cases')
-    else:
-        feats = [_one_case(j) for j in jobs]
-    y = np.array([[w[name] for name in FAULT_NAMES] for w, _ in case_list])
-    return np.array(feats), y
+    every = [c for case_list in sets.values() for c in case_list]
+    raw = {'procedure': 'preflight_check', 'models': ['hf'], 'noise': True, 'metrics': [],
+           'signals': ['preflight_features'],
+           'cases': [{**wear_changes(w), 'seed': int(seed)} for w, seed in every]}
+    spec = parse_spec(raw, source='pre-flight data', base=params_to_dict(p))
+    ids = [pt.cases[0].case_id for pt in spec.points()]
+    with tempfile.TemporaryDirectory(prefix='eha-preflight-') as tmp:
+        folder = Path(out) if out is not None else Path(tmp) / 'sweep'
+        resume = folder.is_dir() and any(folder.iterdir())
+        run_sweep(spec, folder, workers=workers, in_process=workers <= 1, resume=resume,
+                  progress=bool(progress))
+        t = read_dataset(folder).select(['case_id', 'status', 'error',
+                                         'signal_preflight_features'])
+    row = {c: k for k, c in enumerate(t.column('case_id').to_pylist())}
+    status = t.column('status').to_pylist()
+    bad = [i for i in ids if status[row[i]] != 'ok']
+    if bad:
+        raise SweepError(f'pre-flight data: {len(bad)} cases did not run, first: '
+                         f'{t.column("error")[row[bad[0]]]}')
+    col = t.column('signal_preflight_features').combine_chunks()
+    feats = col.flatten().to_numpy().reshape(len(col), -1)
+    x = feats[[row[i] for i in ids]]
+    out_sets, k = {}, 0
+    for name, case_list in sets.items():
+        y = np.array([[w[n] for n in FAULT_NAMES] for w, _ in case_list])
+        out_sets[name] = (x[k:k + len(case_list)], y)
+        k += len(case_list)
+    return out_sets
 
 
 def _train_member(x, y, xv, yv, hidden, seed, s):
@@ -220,20 +249,26 @@ def recalibrate(model: FaultModel, xv, yv, xc, yc) -> FaultModel:
     return model
 
 
+def data_sets(settings: dict | None = None) -> dict:
+    """The training, validation and calibration cases (``{'train', 'val', 'cal'}``)."""
+    s = dict(FAULT_SETTINGS, **(settings or {}))
+    return {'train': cases(s['n_train'], s['seed_train'], s['degrade_probability']),
+            'val': cases(s['n_val'], s['seed_val'], s['degrade_probability']),
+            'cal': combination_cases(s['n_cal'], s['seed_cal'])}
+
+
 def build_artefact(out: Path | None = None, settings: dict | None = None, workers: int = 2,
-                   progress=print) -> FaultModel:
-    """Generate the data, train, save ``models/faults.npz``."""
+                   progress=print, data: Path | None = None) -> FaultModel:
+    """Generate the data (one sweep; ``data``: keep its dataset there, resumed if present),
+    train, save ``models/faults.npz``."""
     s = dict(FAULT_SETTINGS, **(settings or {}))
     p = default_params()
     t0 = time.perf_counter()
-    x, y = generate(cases(s['n_train'], s['seed_train'], s['degrade_probability']), p,
-                    workers, progress)
-    xv, yv = generate(cases(s['n_val'], s['seed_val'], s['degrade_probability']), p,
-                      workers, progress)
+    d = generate_sets(data_sets(s), p, workers, progress, data)
+    (x, y), (xv, yv), (xc, yc) = d['train'], d['val'], d['cal']
     t_data = time.perf_counter() - t0
     model = train_faults(x, y, xv, yv, s, threads=workers)
-    recalibrate(model, xv, yv, *generate(combination_cases(s['n_cal'], s['seed_cal']), p,
-                                         workers, progress))
+    recalibrate(model, xv, yv, xc, yc)
     model.meta['data_s'] = round(t_data, 1)
     model.meta['train_s'] = round(time.perf_counter() - t0 - t_data, 1)
     model.meta['fluid_hash'] = fluid_hash(p)
@@ -245,5 +280,17 @@ def build_artefact(out: Path | None = None, settings: dict | None = None, worker
     return model
 
 
+def main(argv=None) -> int:
+    import argparse
+    ap = argparse.ArgumentParser(prog='python -m eha_ros.training.preflight',
+                                 description='pre-flight data and fault network')
+    ap.add_argument('--workers', type=int, default=2, help='sweep workers (1: in process)')
+    ap.add_argument('--data', type=Path, default=None,
+                    help='keep the data sweep here (resumed if it holds some of it)')
+    args = ap.parse_args(argv)
+    build_artefact(workers=args.workers, data=args.data)
+    return 0
+
+
 if __name__ == '__main__':
-    build_artefact()
+    raise SystemExit(main())
