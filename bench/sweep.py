@@ -2,8 +2,9 @@
 
 Two kinds of case, each a fixed set of ``--cases`` drawn at random:
 
-* ``scenario``: hf on ``step_0p1`` (0.2 s simulated, about 0.4 s of wall time: the cases the
-  overhead goal is stated for), clearance and overlap drawn over the plant's wear range;
+* ``scenario``: hf and dnn on ``sine_0p01_2pi`` (2 s simulated; about 0.1 s and 0.4 s of wall
+  time, 0.25 s per case on average: the cases the overhead goal is stated for), clearance and
+  overlap drawn over the dynamic surrogates' wear range;
 * ``preflight``: the pre-flight check (1.2 s simulated, about 0.1 s), every fault drawn over
   the pre-flight network's ranges, noise on, the network's estimates as metrics.
 
@@ -24,6 +25,8 @@ plain loop on the same cores (fraction and seconds per case), scaling (``workers
 Monte Carlo on 64 cores with its assumptions.  Load average before and after.
 
     nice python bench/sweep.py [--cases 32] [--preflight-cases 128] [--repeat 3]
+
+``--cases`` counts points for ``scenario`` (two cases each).
 """
 
 import argparse
@@ -45,7 +48,7 @@ from eha_ros.sweep.engine import _client, _close, _procedure, warm_up  # noqa: E
 
 def spec_raw(kind: str, n: int) -> dict:
     if kind == 'scenario':
-        return {'procedure': 'scenario', 'scenario': 'step_0p1', 'models': ['hf'],
+        return {'procedure': 'scenario', 'scenario': 'sine_0p01_2pi', 'models': ['hf', 'dnn'],
                 'random': {'n': n, 'seed': 7, 'ranges': {'radial_clearance_m': [1e-6, 6e-6],
                                                          'overlap_supply_m': [-2e-6, 6e-6]}},
                 'tie': {'overlap_return_m': 'overlap_supply_m'}}
@@ -103,7 +106,8 @@ def engine(spec, workers, tmp: Path, tag: str) -> dict:
 def measure(kind: str, n: int, repeat: int, tmp: Path) -> dict:
     spec = parse_spec(spec_raw(kind, n), source='bench')
     raw, base, points = spec.canonical(), spec.base, spec.points()
-    sim = len(points) * (PREFLIGHT_S if kind == 'preflight' else 0.2)
+    n = sum(len(p.cases) for p in points)
+    sim = n * (PREFLIGHT_S if kind == 'preflight' else 2.0)
     walls = {k: [] for k in ('plain_1', 'plain_2', 'in_process', 'workers_1', 'workers_2')}
     extra = {}
     for i in range(repeat):
@@ -138,7 +142,7 @@ def measure(kind: str, n: int, repeat: int, tmp: Path) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument('--cases', type=int, default=32, help='scenario cases')
+    ap.add_argument('--cases', type=int, default=32, help='scenario points (two cases each)')
     ap.add_argument('--preflight-cases', type=int, default=128)
     ap.add_argument('--repeat', type=int, default=3)
     args = ap.parse_args(argv)

@@ -121,6 +121,22 @@ def test_cases_and_ids():
     assert len({p.inputs['overlap_supply_m'] for p in a}) == 4
 
 
+@pytest.mark.parametrize('raw', [
+    SPEC, SLOW, {'procedure': 'valve_test'},
+    {'procedure': 'preflight_check', 'noise': True, 'seeds': 3},
+    {'procedure': 'scenario', 'scenario': ['step_0p1', 'ramp_0p1'], 'models': ['hf', 'dlut'],
+     'noise': True, 'seeds': [0, 5], 'parameters': {'radial_clearance_m': [2e-6, 3e-6]},
+     'random': {'n': 3, 'ranges': {'overlap_supply_m': [0.0, 1e-6]}},
+     'cases': [{'radial_clearance_m': 5e-6, 'seed': 9}, {'overlap_supply_m': 2e-6}]},
+    {'procedure': 'scenario', 'scenario': 'step_0p1', 'models': ['dlut', 'lut'],
+     'compare': 'yardstick', 'large_dts': [2e-6, 5e-6]},
+])
+def test_the_size_guard_counts_every_case(raw):
+    from eha_ros.sweep.spec import count_cases
+    s = parse_spec(raw)
+    assert count_cases(s) == sum(len(p.cases) for p in s.points())
+
+
 # --- engines ---------------------------------------------------------------------------------
 
 def test_the_dataset_is_complete_and_physical(reference):

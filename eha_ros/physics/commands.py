@@ -15,6 +15,7 @@ and r = 0 before ``t0``.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from pathlib import Path
 
@@ -159,8 +160,23 @@ _TUPLES = ('com_times_s', 'com_values_m', 'valve_test_flows_m3_s')
 
 
 def load_scenarios(path: Path | str | None = None) -> dict[str, Scenario]:
-    """All scenarios of ``config/scenarios.yaml`` (or ``path``) by name."""
+    """All scenarios of ``config/scenarios.yaml`` (or ``path``) by name.  The file is parsed
+    once per version (path, modification time and size): every :func:`simulate` looks its
+    scenario up, and parsing the YAML costs about 50 ms."""
     path = Path(path) if path is not None else config_dir() / 'scenarios.yaml'
+    try:
+        st = path.stat()
+    except OSError:
+        return _parse_scenarios(path)   # read_yaml names what is wrong
+    return dict(_cached_scenarios(str(path), st.st_mtime_ns, st.st_size))
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_scenarios(path: str, mtime_ns: int, size: int) -> dict[str, Scenario]:
+    return _parse_scenarios(Path(path))
+
+
+def _parse_scenarios(path: Path) -> dict[str, Scenario]:
     doc = read_yaml(path, 'scenario', 'name -> scenario')
     out = {}
     for name, entry in doc.items():

@@ -4,13 +4,14 @@ Engines, the same dataset from each (timing and placement columns aside):
 
 * ``in_process``: a plain loop here, batch after batch (no Dask);
 * a ``LocalCluster`` of ``workers`` single-threaded worker processes, started and stopped here
-  (the kernels are single-threaded numba; each worker compiles them once, or loads them from
-  numba's on-disk cache);
+  (the kernels are single-threaded numba; each worker compiles the closed-loop kernel once and
+  loads the blocks it calls from numba's on-disk cache);
 * an existing cluster at ``scheduler`` (``tcp://HOST:8786``: ``dask scheduler`` and ``dask
   worker``, dask-jobqueue, Kubernetes); its workers need this package installed.
 
-The client forms the batches (points in their fixed order, ``batch_size`` points each),
-submits them, and writes each finished batch as its own Parquet file, atomically
+The client forms the batches (points in their fixed order, sized by time: :class:`Batcher`),
+keeps two per worker thread in flight, and writes each finished batch as its own Parquet
+file, atomically
 (:func:`.dataset.write_batch`).  A worker that dies takes its running batch with it; the
 scheduler runs that batch again elsewhere, and the client writes every batch once, when its
 result arrives: no case is lost or written twice.  A batch that kills its worker
@@ -31,7 +32,7 @@ from pathlib import Path
 from .dataset import SPEC_FILE, SweepError, done_case_ids, parts, schema, write_batch
 from .spec import Spec
 
-__all__ = ['run_sweep', 'run_batch', 'SweepInterrupted', 'default_batch_size', 'Progress']
+__all__ = ['run_sweep', 'run_batch', 'SweepInterrupted', 'Batcher', 'Progress']
 
 _WORKER_SPECS = {}
 
@@ -88,10 +89,45 @@ def warm_up(raw: dict, base: dict) -> str:
     return _worker_name()
 
 
-def default_batch_size(n_points: int, workers: int) -> int:
-    """About 16 batches per worker (the tail of the sweep waits on one batch at most), at
-    most 32 points each (a batch is what Ctrl-C or a dying worker costs)."""
-    return max(1, min(32, math.ceil(n_points / (16 * max(1, workers)))))
+class Batcher:
+    """Points into batches sized by time: about ``target_s`` of work each, from the mean wall
+    time of the points finished so far (one point per batch until one has finished), never
+    more than ``max_points``, and smaller towards the end so that the last batches spread
+    over every worker (the sweep's tail waits on one short batch, not a long one).  A fixed
+    ``size`` overrides the sizing.  A batch is also what Ctrl-C or a dying worker costs."""
+
+    def __init__(self, points, size: int | None = None, target_s: float = 2.0,
+                 max_points: int = 32):
+        self.pending = list(reversed(points))
+        self.size = size
+        self.target_s = target_s
+        self.max_points = max_points
+        self._wall = 0.0
+        self._n = 0
+        self.batches = 0
+
+    def __bool__(self) -> bool:
+        return bool(self.pending)
+
+    def record(self, rows: list) -> None:
+        """Learn from a finished batch's rows (``wall_point_s`` per point)."""
+        per_point = {r['point_id']: r.get('wall_point_s') for r in rows}
+        for w in per_point.values():
+            if w is not None:
+                self._wall += w
+                self._n += 1
+
+    def next(self, workers: int) -> list:
+        if self.size:
+            n = self.size
+        elif not self._n:
+            n = 1
+        else:
+            mean = self._wall / self._n
+            n = max(1, min(self.max_points, int(self.target_s / max(mean, 1e-6))))
+            n = min(n, max(1, len(self.pending) // (2 * max(workers, 1))))
+        self.batches += 1
+        return [self.pending.pop() for _ in range(min(n, len(self.pending)))]
 
 
 class Progress:
@@ -193,8 +229,9 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
     existing cluster instead; ``client``: a connected ``distributed.Client`` to use (left
     open); ``in_process``: no Dask.  A LocalCluster starts its workers as fresh processes
     (spawn), which import the calling script's main module again: a script that calls this
-    must do so under ``if __name__ == '__main__':``, as with :mod:`multiprocessing`.  ``warm``: compile and load every model on every worker
-    before the cases (timing columns without JIT).
+    must do so under ``if __name__ == '__main__':``, as with :mod:`multiprocessing`.
+    ``warm``: compile and load every model on every worker before the cases (timing columns
+    without JIT).
     """
     log = log or (lambda text: print(text, file=sys.stderr, flush=True))
     out = Path(out)
@@ -208,8 +245,7 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
     workers = int(workers or os.cpu_count() or 1)
     if workers < 1:
         raise SweepError(f'--workers {workers} must be at least 1')
-    size = batch_size or default_batch_size(len(todo), 1 if in_process else workers)
-    batches = [todo[i:i + size] for i in range(0, len(todo), size)]
+    batches = Batcher(todo, batch_size)
     if client is not None:
         engine = f'client {client.scheduler.address}'
     elif in_process:
@@ -218,7 +254,7 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
         engine = f'scheduler {scheduler}' if scheduler else f'LocalCluster of {workers} workers'
     summary = {'out': str(out), 'cases': n_cases, 'points': len(points),
                'already_done': n_cases - n_todo, 'ran': 0, 'ok': 0, 'diverged': 0, 'error': 0,
-               'batches': len(batches), 'batch_size': size, 'engine': engine,
+               'batches': 0, 'batch_size': batch_size or 'by time', 'engine': engine,
                'wall_s': None, 'interrupted': False}
     bar = progress if isinstance(progress, Progress) else (Progress(n_todo) if progress
                                                            else None)
@@ -231,6 +267,7 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
             r.setdefault('procedure', spec.procedure)
             r.setdefault('noise', spec.noise)
         write_batch(out, rows, sch, batch[0].index)
+        batches.record(rows)
         for r in rows:
             summary[r['status']] = summary.get(r['status'], 0) + 1
         summary['ran'] += len(rows)
@@ -242,7 +279,8 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
         if in_process:
             if warm and batches:
                 warm_up(raw, base)
-            for b in batches:
+            while batches:
+                b = batches.next(1)
                 finished(b, run_batch(raw, base, b))
         elif batches:
             if own:
@@ -254,6 +292,7 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
             _run_dask(client, raw, base, batches, finished)
     except BaseException as exc:
         summary['interrupted'] = True
+        summary['batches'] = batches.batches
         summary['wall_s'] = round(time.monotonic() - t0, 3)
         if bar is not None and bar.tty:
             print(file=bar.stream)
@@ -264,23 +303,34 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
         raise
     if own:
         _close(client, cluster)
+    summary['batches'] = batches.batches
     summary['wall_s'] = round(time.monotonic() - t0, 3)
     summary['files'] = len(parts(out))
     return summary
 
 
-def _run_dask(client, raw, base, batches, finished) -> None:
+def _run_dask(client, raw, base, batches: Batcher, finished) -> None:
+    """Keep two batches per worker thread in flight, each sized when it is submitted."""
     import hashlib
 
     from distributed import as_completed
     from distributed.scheduler import KilledWorker
     futures = {}
-    for b in batches:
+
+    def threads() -> int:
+        return max(1, sum(client.nthreads().values()))
+
+    def submit():
+        b = batches.next(threads())
         key = 'eha-sweep-' + hashlib.sha256('.'.join(p.point_id for p in b).encode()) \
             .hexdigest()[:16]
-        futures[client.submit(run_batch, raw, base, b, key=key, pure=False)] = b
+        fut = client.submit(run_batch, raw, base, b, key=key, pure=False)
+        futures[fut] = b
+        return fut
+
+    ac = as_completed([submit() for _ in range(2 * threads()) if batches])
     try:
-        for fut in as_completed(futures):
+        for fut in ac:
             b = futures.pop(fut)
             try:
                 rows = fut.result()
@@ -291,6 +341,8 @@ def _run_dask(client, raw, base, batches, finished) -> None:
                          'error': f'KilledWorker: {exc}', **p.inputs}
                         for p in b for c in p.cases]
             finished(b, rows)
+            while batches and len(futures) < 2 * threads():
+                ac.add(submit())
     finally:
         if futures:
             client.cancel(list(futures))

@@ -94,7 +94,12 @@ class Procedure:
                 models[m] = proc.model(m)
             except (ValueError, OSError) as exc:
                 raise _spec_error(f'{where}: model {m}: {exc}') from None
+        seen = set()
         for pt in spec.points():
+            key = tuple(sorted(pt.inputs.items()))
+            if key in seen:   # the same parameters at another seed or scenario: checked
+                continue
+            seen.add(key)
             try:
                 p = pt.params(spec)
                 for c in pt.cases:

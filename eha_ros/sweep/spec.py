@@ -457,7 +457,9 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
     return spec
 
 
-def _check_size(spec: Spec, where: str, max_cases: int) -> None:
+def count_cases(spec: Spec) -> int:
+    """The number of cases of ``spec``, counted without building them (the size guard runs
+    before the cases are made)."""
     n_inputs = 1
     for v in spec.grid.values():
         n_inputs *= len(v)
@@ -467,6 +469,12 @@ def _check_size(spec: Spec, where: str, max_cases: int) -> None:
         n_inputs = max(n_inputs, 1) * spec.random['n']
     n_points = n_inputs * len(spec.seeds) + sum(
         1 if 'seed' in c else len(spec.seeds) for c in spec.cases)
-    n = max(n_points, 1) * len(spec.case_models()) * len(spec.scenarios)
+    if not (spec.grid or spec.random or spec.cases):   # the nominal point, at every seed
+        n_points = len(spec.seeds)
+    return n_points * len(spec.case_models()) * len(spec.scenarios)
+
+
+def _check_size(spec: Spec, where: str, max_cases: int) -> None:
+    n = count_cases(spec)
     if n > max_cases:
         raise SpecError(f'{where}: {n} cases exceed --max-cases {max_cases}')
