@@ -23,16 +23,14 @@ import hashlib
 import os
 from pathlib import Path
 
+from .errors import SweepError
+
 __all__ = ['SweepError', 'schema', 'write_batch', 'done_case_ids', 'read_dataset',
            'TIMING_COLUMNS', 'SPEC_FILE']
 
 SPEC_FILE = '_spec.yaml'
 #: Columns that depend on where and how fast a case ran (left out of determinism checks).
 TIMING_COLUMNS = ('wall_s', 'wall_point_s', 'wall_cost_s_per_s', 'worker')
-
-
-class SweepError(RuntimeError):
-    """A sweep's output folder cannot be used (one line)."""
 
 
 def schema(spec):

@@ -32,6 +32,8 @@ from eha_ros.physics import ParameterError, SimulationDiverged
 from eha_ros.physics.params import replace
 from eha_ros.surrogates.base import relative_error
 
+from .errors import SpecError, label
+
 __all__ = ['PROCEDURE_CLASSES', 'Procedure', 'ScenarioProcedure', 'PreflightProcedure',
            'ValveTestProcedure', 'FEATURES']
 
@@ -109,8 +111,7 @@ class Procedure:
                     if cls is ScenarioProcedure:
                         check_dt(p, c.dt_s, s)
             except ValueError as exc:
-                from .spec import _label
-                raise _spec_error(f'{where}: case {_label(pt.inputs)}: {exc}') from None
+                raise _spec_error(f'{where}: case {label(pt.inputs)}: {exc}') from None
 
     def model(self, name):
         """The fluid block of model ``name`` (``None`` for hf), loaded once."""
@@ -139,7 +140,6 @@ class Procedure:
 
 
 def _spec_error(text):
-    from .spec import SpecError
     return SpecError(text)
 
 

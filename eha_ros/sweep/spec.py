@@ -43,6 +43,8 @@ import numpy as np
 from eha_ros.physics import ParameterError, get_scenario, params_to_dict
 from eha_ros.physics.params import SPEC_BY_NAME
 
+from .errors import SpecError, label
+
 __all__ = ['SpecError', 'Spec', 'Point', 'Case', 'PROCEDURES', 'MAX_CASES', 'load_spec',
            'parse_spec', 'case_id']
 
@@ -55,10 +57,6 @@ KEYS = ('procedure', 'scenario', 'models', 'seeds', 'noise', 'parameters', 'rand
         'flows_m3_s')
 #: Plant step of every procedure [s] (the reference's, and the in-loop comparison's).
 DT_S = 1e-6
-
-
-class SpecError(ValueError):
-    """A spec that cannot run: one line naming what is wrong."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -215,7 +213,7 @@ class Spec:
             try:
                 params.append(self.point_params(inputs))
             except ParameterError as exc:
-                raise SpecError(f'{self.source}: case {_label(inputs)}: {exc}') from None
+                raise SpecError(f'{self.source}: case {label(inputs)}: {exc}') from None
         for sc in self.scenarios:
             for (inputs, seed), p in zip(sets, params):
                 for s in ((seed,) if seed is not None else self.seeds):
@@ -224,7 +222,7 @@ class Spec:
                     pid = hashlib.sha256('.'.join(c.case_id for c in cases).encode()
                                          ).hexdigest()
                     if pid in seen:
-                        raise SpecError(f'{self.source}: case {_label(inputs)}, seed {s} '
+                        raise SpecError(f'{self.source}: case {label(inputs)}, seed {s} '
                                         f'repeats point {seen[pid]} (every case runs once)')
                     seen[pid] = len(pts)
                     pts.append(Point(pid[:16], len(pts), dict(inputs), int(s), cases, sc))
@@ -234,11 +232,6 @@ class Spec:
     def canonical(self) -> dict:
         """The spec as stored beside its dataset (what ``--resume`` must match)."""
         return dict(sorted(self.raw.items()))
-
-
-def _label(inputs: dict) -> str:
-    return ', '.join(f'{k}={v:g}' if isinstance(v, float) else f'{k}={v}'
-                     for k, v in inputs.items()) or 'nominal'
 
 
 def load_spec(path, max_cases: int = MAX_CASES) -> Spec:
