@@ -164,6 +164,8 @@ setup(
          [os.path.join('resource', PACKAGE)]),
         (os.path.join('share', PACKAGE), ['package.xml']),
         (os.path.join('share', PACKAGE, 'config'), _relative(os.path.join('config', '*.yaml'))),
+        (os.path.join('share', PACKAGE, 'config', 'sweeps'),
+         _relative(os.path.join('config', 'sweeps', '*.yaml'))),
     ],
     # Installed by requirements.txt (pip) or by the ROS distribution (colcon/rosdep).
     install_requires=[],

@@ -137,6 +137,17 @@ def test_the_size_guard_counts_every_case(raw):
     assert count_cases(s) == sum(len(p.cases) for p in s.points())
 
 
+def test_the_example_specs_parse():
+    """The specs shipped in config/sweeps (installed beside the parameters) are valid."""
+    from eha_ros.physics.params import config_dir
+    from eha_ros.sweep import load_spec
+    files = sorted((config_dir() / 'sweeps').glob('*.yaml'))
+    assert [f.stem for f in files] == ['preflight_monte_carlo', 'valve_test_drift',
+                                       'wear_plane']
+    for f in files:
+        assert load_spec(f).points()
+
+
 # --- engines ---------------------------------------------------------------------------------
 
 def test_the_dataset_is_complete_and_physical(reference):
@@ -319,3 +330,24 @@ def test_a_worker_loads_neither_ros_nor_torch_nor_training():
                          timeout=300, env=_env())
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == '[]'
+
+
+def test_batches_are_sized_by_time():
+    """One point until one has finished, then about 2 s of work per batch (at most 32), and
+    smaller towards the end so the tail spreads over the workers; every point once."""
+    from eha_ros.sweep.engine import Batcher
+    b = Batcher(list(range(200)))
+    first = b.next(2)
+    assert first == [0]
+    b.record([{'point_id': 'a', 'wall_point_s': 0.1}])     # 0.1 s a point: 20 per batch
+    assert len(b.next(2)) == 20
+    b.record([{'point_id': 'b', 'wall_point_s': 0.001}])   # mean 0.05 s: capped at 32
+    assert len(b.next(2)) == 32
+    got = first + list(range(1, 53))
+    while b:
+        batch = b.next(2)
+        assert 1 <= len(batch) <= max(1, (len(b.pending) + len(batch)) // 4)
+        got += batch
+    assert got == list(range(200))
+    fixed = Batcher(list(range(10)), size=4)
+    assert [len(fixed.next(2)) for _ in range(3)] == [4, 4, 2]

@@ -67,7 +67,14 @@ def write_batch(folder: Path, rows: list, sch, first_index: int) -> Path:
         if extra:  # a metric the schema lacks would be dropped silently: refuse
             raise SweepError(f'row of case {r.get("case_id")} has columns outside the '
                              f'schema: {", ".join(sorted(extra))}')
-    table = pa.Table.from_pylist(rows, schema=sch)
+    columns = []
+    for field in sch:
+        values = [r.get(field.name) for r in rows]
+        if pa.types.is_list(field.type):   # signals: numpy arrays, one buffer per column
+            columns.append(_list_array(values))
+        else:
+            columns.append(pa.array(values, type=field.type))
+    table = pa.Table.from_arrays(columns, schema=sch)
     digest = hashlib.sha256('.'.join(r['case_id'] for r in rows).encode()).hexdigest()[:8]
     path = Path(folder) / f'part-{first_index:07d}-{digest}.parquet'
     tmp = Path(folder) / f'.{path.name}.tmp'
@@ -77,6 +84,18 @@ def write_batch(folder: Path, rows: list, sch, first_index: int) -> Path:
         os.fsync(f.fileno())
     os.replace(tmp, path)
     return path
+
+
+def _list_array(values):
+    """A ``list<double>`` column from per-row arrays (``None``: a null)."""
+    import numpy as np
+    import pyarrow as pa
+    arrays = [np.asarray(v, dtype=float).ravel() for v in values if v is not None]
+    lengths = [0 if v is None else np.asarray(v).size for v in values]
+    offsets = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int32)
+    flat = np.concatenate(arrays) if arrays else np.zeros(0)
+    mask = pa.array([v is None for v in values])
+    return pa.ListArray.from_arrays(pa.array(offsets), pa.array(flat), mask=mask)
 
 
 def parts(folder: Path) -> list:

@@ -125,7 +125,7 @@ class Procedure:
 
     def _signals(self, arrays: dict) -> dict:
         every = int(round(self.spec.signal_dt_s / self.RECORD_DT_S))
-        return {f'signal_{s}': np.asarray(arrays[s], dtype=float)[every - 1::every].tolist()
+        return {f'signal_{s}': np.array(arrays[s], dtype=float)[every - 1::every]
                 for s in self.spec.signals}
 
     def run_point(self, point) -> list:
@@ -276,8 +276,8 @@ class ScenarioProcedure(Procedure):
         out = {}
         for name in self.spec.signals:
             sig = [self._signals(r.data)[f'signal_{name}'] for r in runs]
-            out[f'signal_{name}_yardstick_lo'] = np.min(sig, axis=0).tolist()
-            out[f'signal_{name}_yardstick_hi'] = np.max(sig, axis=0).tolist()
+            out[f'signal_{name}_yardstick_lo'] = np.min(sig, axis=0)
+            out[f'signal_{name}_yardstick_hi'] = np.max(sig, axis=0)
         return out
 
     @staticmethod
@@ -360,11 +360,12 @@ class PreflightProcedure(Procedure):
         out = {}
         if 'preflight_features' in self.spec.signals:
             from eha_ros.health.preflight import preflight_features
-            out['signal_preflight_features'] = preflight_features(arrays).tolist()
+            out['signal_preflight_features'] = np.asarray(preflight_features(arrays),
+                                                          dtype=float)
         rest = [s for s in self.spec.signals if s != 'preflight_features']
         every = int(round(self.spec.signal_dt_s / self.RECORD_DT_S))
-        out.update({f'signal_{s}': np.asarray(arrays[s], dtype=float)[every - 1::every]
-                    .tolist() for s in rest})
+        out.update({f'signal_{s}': np.array(arrays[s], dtype=float)[every - 1::every]
+                    for s in rest})
         return out
 
     def run_point(self, point) -> list:
@@ -468,7 +469,7 @@ class ValveTestProcedure(Procedure):
                        est_overlap_m=est.overlap_m, est_overlap_std_m=est.overlap_std_m,
                        pressure_residual_pa=est.pressure_residual_pa)
             if self.spec.signals:
-                row['signal_p12_pa'] = np.concatenate([cv[2] for cv in curves]).tolist()
+                row['signal_p12_pa'] = np.concatenate([cv[2] for cv in curves])
         except Exception as exc:
             row.update(zip(('status', 'error'), _status(exc)))
         row['wall_s'] = row['wall_point_s'] = time.perf_counter() - t0

@@ -12,7 +12,7 @@ The YAML form (README, "Sweeps")::
       overlap_supply_m: [0.0, 1.0e-6]
     random: {n: 1000, seed: 1, ranges: {radial_clearance_m: [1.0e-6, 6.0e-6]}}
     tie: {overlap_return_m: overlap_supply_m}   # a parameter set equal to a swept one
-    cases: [{radial_clearance_m: 3.0e-6, seed: 4}, ...]   # explicit cases (with or instead)
+    cases: [{radial_clearance_m: 3.0e-6, seed: 4}, ...]   # explicit points, besides the grid
     compare: yardstick             # scenario: hf's yardstick per case (evaluation.noise_free)
     large_dts: [2.0e-6]            # with the yardstick: hf and dynamic models at these steps
     dt_s: 1.0e-6                   # plant step [s]
