@@ -12,13 +12,17 @@ the bounds in every case.  With noise
 :mod:`eha_ros.evaluation`) for ``--noise-models`` (default all but the reference's
 networks ``nn``, ``nn2``, which miss the noise-free bounds by far and cost 15-20x hf).
 Cost: wall seconds per simulated second of each run against hf's (JIT compilation excluded:
-each process runs every model once before); ``bench/plant_rtf.py`` measures cost on its own.
-``--jobs 2`` runs the cases in two processes (158 s on the 2-core reference machine).
+each worker runs every model once before); ``bench/plant_rtf.py`` measures cost on its own.
+
+The cases run as two sweeps (:mod:`eha_ros.sweep.comparison`): noise-free (scenario x wear
+point, every model) and with noise (scenario x seed); ``--jobs 2`` on a LocalCluster of two
+workers (258 s for the default run on the 2-core reference machine), ``--jobs 1`` in this
+process; ``--data DIR`` keeps both datasets (and resumes them).
 
     nice python bench/inloop.py [--models dlut,dnn,dga,lut,ga,nn,nn2] [--seeds 20]
         [--noise-models dlut,dnn,dga,lut,ga] [--large-dts 2e-6,5e-6,1e-5]
         [--scenarios a,b] [--no-noise] [--wear nominal|all] [--wear-points rand_6,...]
-        [--jobs 2] [--out FILE]
+        [--jobs 2] [--data DIR] [--quiet] [--out FILE]
 """
 
 import argparse
@@ -33,6 +37,7 @@ os.environ.setdefault('NUMBA_NUM_THREADS', '1')
 from eha_ros.graph import MODELS, REFERENCE_SCENARIOS  # noqa: E402
 from eha_ros.evaluation import (CONTROLLER_PERIOD_S, DT_S, EXTRA_SCENARIOS,  # noqa: E402
                                 WEAR_POINTS, largest_steps, summarise)
+from eha_ros.sweep import SpecError, SweepError  # noqa: E402
 from eha_ros.sweep.comparison import run_comparison  # noqa: E402
 
 
@@ -89,9 +94,13 @@ def main(argv=None):
               'load_before': os.getloadavg()}
     with tempfile.TemporaryDirectory(prefix='eha-inloop-') as tmp:
         data = args.data or tmp
-        done = run_comparison(data, scenarios, wear, models, noise_models, args.seeds,
-                              large_dts, workers=args.jobs, in_process=args.jobs == 1,
-                              progress=not args.quiet)
+        try:
+            done = run_comparison(data, scenarios, wear, models, noise_models, args.seeds,
+                                  large_dts, workers=args.jobs, in_process=args.jobs == 1,
+                                  progress=not args.quiet)
+        except (SpecError, SweepError) as exc:
+            print(f'inloop: error: {exc}', file=sys.stderr)
+            return 2
     for wname in wear:  # in order, whatever order they finished in
         for sc in scenarios:
             result['noise_free'][f'{sc}/{wname}'] = done['noise_free'][f'{sc}/{wname}']
