@@ -20,7 +20,10 @@ from .spec import MAX_CASES, SpecError, load_spec
 
 
 def _run(argv) -> int:
-    ap = argparse.ArgumentParser(prog='eha-sweep', description=__doc__.split('\n\n')[0])
+    ap = argparse.ArgumentParser(
+        prog='eha-sweep', description='run every case of a sweep spec into a Parquet dataset',
+        epilog='eha-sweep report DIR [--metric NAME] [--x NAME] [--y NAME]: the summary '
+               'table and plots of a dataset (eha-sweep report --help)')
     ap.add_argument('spec', help='the sweep spec (YAML; README, "Sweeps")')
     ap.add_argument('--out', required=True, help='dataset folder (new, or --resume)')
     where = ap.add_mutually_exclusive_group()
