@@ -29,9 +29,11 @@ SPEC = {'procedure': 'scenario', 'scenario': 'step_0p1', 'models': ['hf', 'dlut'
         'seeds': [0], 'noise': False,
         'parameters': {'radial_clearance_m': [2.0e-6, 4.0e-6],
                        'overlap_supply_m': [0.0, 1.0e-6, 2.0e-6]}}
-#: A longer one for the kill and interrupt tests: 16 hf cases of about 0.5 s each.
-SLOW = {'procedure': 'scenario', 'scenario': 'step_0p1', 'models': ['hf'], 'noise': False,
-        'parameters': {'radial_clearance_m': [2.0e-6, 3.0e-6, 4.0e-6, 5.0e-6],
+#: A longer one for the kill and interrupt tests: 8 points of about 2 s each (hf and the
+#: reference's nn, 15 x hf's cost, on a 2 s sine), 16 cases.
+SLOW = {'procedure': 'scenario', 'scenario': 'sine_0p01_2pi', 'models': ['hf', 'nn'],
+        'noise': False,
+        'parameters': {'radial_clearance_m': [2.0e-6, 3.0e-6],
                        'overlap_supply_m': [0.0, 1.0e-6, 2.0e-6, 3.0e-6]}}
 
 
@@ -206,9 +208,19 @@ def _scheduler(tmp_path):
     return address, procs
 
 
+def _batch_key(point_id: str) -> str:
+    """The Dask key of a batch holding just this point (``--batch-size 1``)."""
+    import hashlib
+    return 'eha-sweep-' + hashlib.sha256(point_id.encode()).hexdigest()[:16]
+
+
 def test_a_worker_killed_mid_sweep_loses_and_repeats_nothing(reference, tmp_path):
     """SIGKILL to a worker running a batch: the scheduler runs that batch again on the other
-    worker, every case is written once, and the dataset equals the in-process one."""
+    worker, every case is written once, and the dataset equals the in-process one.
+
+    No race: once a batch is written the victim is frozen (SIGSTOP), so it can neither finish
+    nor report its batch; the batch the scheduler then still sees it processing is the one
+    the kill takes, and its rows must come from the other worker."""
     from distributed import Client
     address, procs = _scheduler(tmp_path)
     out = tmp_path / 'remote'
@@ -220,19 +232,23 @@ def test_a_worker_killed_mid_sweep_loses_and_repeats_nothing(reference, tmp_path
                                   str(out), '--scheduler', address, '--batch-size', '1',
                                   '--quiet'], env=_env(), stdout=subprocess.PIPE,
                                  stderr=subprocess.PIPE, text=True)
-        victim = None
-        deadline = time.monotonic() + 120
-        while victim is None and time.monotonic() < deadline and sweep.poll() is None:
-            if list(out.glob('part-*.parquet')):   # mid-sweep: a batch written, others running
-                busy = {w: k for w, k in client.processing().items() if k}
-                victim = next(iter(busy), None)
+        victim, lost = None, ()
+        deadline = time.monotonic() + 180
+        while not lost and time.monotonic() < deadline and sweep.poll() is None:
+            if list(out.glob('part-*.parquet')):   # mid-sweep: a batch written
+                for w in client.processing():
+                    os.kill(pids[w], signal.SIGSTOP)
+                    time.sleep(0.5)   # whatever it sent before it froze has arrived
+                    lost = tuple(client.processing()[w])
+                    if lost:
+                        victim = w
+                        break
+                    os.kill(pids[w], signal.SIGCONT)   # between two batches: not this one
             time.sleep(0.05)
-        assert victim is not None, 'no worker was running a batch'
-        lost_keys = client.processing()[victim]
+        assert lost, 'no worker was running a batch'
         os.kill(pids[victim], signal.SIGKILL)
-        stdout, stderr = sweep.communicate(timeout=180)
+        stdout, stderr = sweep.communicate(timeout=300)
         assert sweep.returncode == 0, stderr
-        assert lost_keys   # the killed worker held a batch, which ran again elsewhere
         client.close()
     finally:
         for p in procs:
@@ -241,6 +257,8 @@ def test_a_worker_killed_mid_sweep_loses_and_repeats_nothing(reference, tmp_path
     rows = read_dataset(out).to_pylist()
     ids = [r['case_id'] for r in rows]
     assert len(ids) == len(set(ids)) == 16
+    rerun = [r for r in rows if _batch_key(r['point_id']) in lost]
+    assert rerun and all(r['worker'] != victim for r in rerun)   # ran again, elsewhere
     assert _table(out) == _table(reference['slow'])
     assert json.loads(stdout)['ok'] == 16
 
@@ -253,11 +271,15 @@ def test_interrupt_then_resume_gives_the_uninterrupted_dataset(reference, tmp_pa
     p = subprocess.Popen([SWEEP, str(spec), '--out', str(out), '--in-process',
                           '--batch-size', '2'], env=_env(), stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 120
+    deadline = time.monotonic() + 180
     while not list(out.glob('part-*.parquet')) and time.monotonic() < deadline:
         time.sleep(0.02)
+    # frozen, then interrupted: it takes the signal within its current case (about 2 s),
+    # with three batches of two such points still to run
+    p.send_signal(signal.SIGSTOP)
     p.send_signal(signal.SIGINT)
-    stdout, stderr = p.communicate(timeout=60)
+    p.send_signal(signal.SIGCONT)
+    stdout, stderr = p.communicate(timeout=120)
     assert p.returncode == 130, stderr
     kept = json.loads(stdout)
     assert kept['interrupted'] and 0 < kept['ran'] < 16
