@@ -268,9 +268,12 @@ def test_interrupt_then_resume_gives_the_uninterrupted_dataset(reference, tmp_pa
     says how to resume; ``--resume`` runs only the rest; the dataset is the whole one."""
     spec = _write(tmp_path / 'slow.yaml', SLOW)
     out = tmp_path / 'cut'
+    # SIGINT as a terminal leaves it (a shell starting this suite in the background ignores
+    # SIGINT, and a child inherits that: Python then installs no KeyboardInterrupt handler)
     p = subprocess.Popen([SWEEP, str(spec), '--out', str(out), '--in-process',
                           '--batch-size', '2'], env=_env(), stdout=subprocess.PIPE,
-                         stderr=subprocess.PIPE, text=True)
+                         stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 180
     while not list(out.glob('part-*.parquet')) and time.monotonic() < deadline:
         time.sleep(0.02)
