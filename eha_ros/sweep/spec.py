@@ -36,7 +36,6 @@ import hashlib
 import itertools
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 
@@ -236,18 +235,11 @@ class Spec:
 
 def load_spec(path, max_cases: int = MAX_CASES) -> Spec:
     """Read and check a YAML spec file."""
-    import yaml
-    path = Path(path)
+    from eha_ros.physics.params import read_yaml
     try:
-        text = path.read_text()
-    except OSError as exc:
-        raise SpecError(f'cannot read spec {path}: {exc.strerror}') from None
-    try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, 'problem_mark', None)
-        where = f' (line {mark.line + 1})' if mark is not None else ''
-        raise SpecError(f'spec {path} is not valid YAML{where}') from None
+        raw = read_yaml(path, 'sweep spec')
+    except ParameterError as exc:
+        raise SpecError(str(exc)) from None
     return parse_spec(raw, source=str(path), max_cases=max_cases)
 
 
