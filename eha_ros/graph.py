@@ -44,7 +44,8 @@ __all__ = ['NAMESPACE', 'TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOP
            'DYNAMIC_MODELS', 'ALGEBRAIC_MODELS',
            'STATUS_OK', 'STATUS_END_STOP', 'STATUS_CAVITATION', 'STATUS_DIVERGED',
            'STATUS_VALVE_TEST', 'STATUS_PREFLIGHT', 'STATUS_NAMES', 'LEVEL_OK', 'LEVEL_WARN',
-           'LEVEL_ERROR', 'LEVEL_NAMES', 'REFERENCE_SCENARIOS', 'NODES', 'TIMING_SUFFIX']
+           'LEVEL_ERROR', 'LEVEL_CANNOT_ASSESS', 'LEVEL_NAMES', 'REFERENCE_SCENARIOS', 'NODES',
+           'TIMING_SUFFIX']
 
 #: Default namespace of the actuator's own topics (``/diagnostics`` and ``/clock`` are global).
 NAMESPACE = '/eha'
@@ -126,7 +127,8 @@ TIMING_SUFFIX = ': timing'
 LEVEL_OK = 0
 LEVEL_WARN = 1
 LEVEL_ERROR = 2
-LEVEL_NAMES = ('OK', 'WARN', 'ERROR')
+LEVEL_CANNOT_ASSESS = 3
+LEVEL_NAMES = ('OK', 'WARN', 'ERROR', 'CANNOT_ASSESS')
 
 #: QoS of every graph topic (names as ``rmw_qos_*_policy_to_str`` spells them).
 QOS_HISTORY = 'keep_last'

@@ -43,8 +43,11 @@ __all__ = ['GraphConfig', 'GraphResult', 'GraphError', 'GraphConfigError', 'Grap
 
 STATE_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_s',
                 'spool_position_m', 'flapper_position_m', 'p1_pa', 'p2_pa', 'p12_pa',
-                'load_flow_m3_s', 'coil_current_a', 'torque_motor_force_n', 'sim_time_s')
-_STATE_INTS = ('stamp_ns', 'tick', 'status', 'valve_test_point', 'valve_test_point_end')
+                'load_flow_m3_s', 'coil_current_a', 'torque_motor_force_n', 'sim_time_s',
+                'supply_pressure_measured_pa', 'return_pressure_measured_pa',
+                'fluid_temperature_measured_k')
+_STATE_INTS = ('stamp_ns', 'tick', 'status', 'valve_test_point', 'valve_test_point_end',
+               'valve_test_procedure')
 
 #: The harness's own node, which collects what the graph publishes.
 COLLECTOR = 'eha_harness_collector'
@@ -151,7 +154,8 @@ class GraphConfig:
         common = {'mode': self.mode, 'rate_hz': float(self.rate_hz)}
         sc = get_scenario(self.scenario)
         test = ({'valve_test': True,
-                 'valve_test_flows_m3_s': [float(q) for q in sc.valve_test_flows_m3_s]}
+                 'valve_test_flows_m3_s': [float(q) for q in sc.valve_test_flows_m3_s],
+                 'valve_test_procedure': sc.valve_test_procedure}
                 if sc.valve_test else {})
         if sc.preflight_check:
             test['preflight_check'] = True
@@ -371,6 +375,7 @@ class _Collector:
             cols['status'].append(msg.status)
             cols['valve_test_point'].append(msg.valve_test_point)
             cols['valve_test_point_end'].append(int(msg.valve_test_point_end))
+            cols['valve_test_procedure'].append(msg.valve_test_procedure)
 
         def on_command(msg, now):
             self.command_cols['stamp_ns'].append(stamp_to_ns(msg.header.stamp))

@@ -11,12 +11,19 @@ Three kinds of estimate:
 * ``in-service``: every ``update_period_s`` of state time, the valve model fitted to the
   (XS, Q, P12) samples of the last ``window_s`` (:class:`.health.InServiceEstimator`):
   radial clearance and overlap;
-* ``valve-test``: each time a valve-test curve completes, the diagnostic network on the
-  curves so far (:class:`.health.ValveTestEstimator`): clearance and overlap;
+* ``valve-test``: each time a valve-test curve completes, on the curves so far: for the
+  reference's procedure the diagnostic network (:class:`.valve_test.ValveTestEstimator`):
+  clearance and overlap; for the settled procedure the valve fit at the measured test
+  conditions (:class:`.valve_fit.ValveFitEstimator`): clearance, overlap, Khsv and the
+  jack's piston leakage;
 * ``preflight``: at the end of a pre-flight check, the fault network
-  (:mod:`.faults`) on its record: demagnetisation, filter clogging, spool and jack
-  friction, current offset (and its own reading of clearance and overlap, reported only
-  where no valve test has given them).
+  (:mod:`.preflight`) on its record and measured conditions: demagnetisation, filter
+  clogging, spool and jack friction, current offset.
+
+The test conditions are the mean of the bench's readings over the test's states (supply and
+return pressure, fluid temperature); where the states carry none (NaN), nominal conditions are
+assumed, the estimate says so and its deviations widen.  An estimate whose model does not
+explain the test (its ``mismatch``) gives items of level ``CANNOT_ASSESS`` with the reason.
 
 Every report carries one :class:`Item` per monitored parameter, under the plant's parameter
 names (:data:`ITEMS`), with value, standard deviation, level and reason; parameters a
@@ -30,9 +37,11 @@ from collections import deque
 
 import numpy as np
 
-from eha_ros.graph import LEVEL_NAMES, STATUS_DIVERGED, STATUS_PREFLIGHT, STATUS_VALVE_TEST
+from eha_ros.graph import (LEVEL_CANNOT_ASSESS, LEVEL_NAMES, STATUS_DIVERGED,
+                           STATUS_PREFLIGHT, STATUS_VALVE_TEST)
+from eha_ros.physics.bench import mean_conditions
 from eha_ros.physics.params import ParameterError, PlantParams
-from eha_ros.physics.maintenance import MAP_POINTS, PREFLIGHT_SIGNALS
+from eha_ros.physics.maintenance import MAP_POINTS, PREFLIGHT_SIGNALS, valve_test_schedule
 
 from eha_ros.health.posterior import InServiceEstimator
 from eha_ros.health.thresholds import (ERROR, OK, WARN, HealthEstimate, HealthThresholds,
@@ -45,11 +54,24 @@ __all__ = ['ITEMS', 'ITEM_UNITS', 'Item', 'HealthReport', 'Job', 'MonitorCore',
 
 #: Monitored parameters (plant names) and their units.
 ITEMS = ('radial_clearance_m', 'overlap_supply_m', 'demagnetisation', 'filter_clogging',
-         'spool_static_friction_n', 'jack_static_friction_n', 'offset_a')
+         'spool_static_friction_n', 'jack_static_friction_n', 'offset_a', 'valve_degradation',
+         'leakage_coeff_m3_s_pa')
 ITEM_UNITS = {'radial_clearance_m': 'm', 'overlap_supply_m': 'm', 'demagnetisation': '1',
               'filter_clogging': '1', 'spool_static_friction_n': 'N',
-              'jack_static_friction_n': 'N', 'offset_a': 'A'}
+              'jack_static_friction_n': 'N', 'offset_a': 'A', 'valve_degradation': '1',
+              'leakage_coeff_m3_s_pa': 'm^3/(s Pa)'}
 _WEAR = ('radial_clearance_m', 'overlap_supply_m')
+CANNOT_ASSESS = LEVEL_CANNOT_ASSESS
+#: Severity of the levels, for the worst of several: an item that cannot be assessed ranks
+#: above OK (it is not shown healthy) and below a shown degradation.
+SEVERITY = {0: 0, CANNOT_ASSESS: 1, 1: 2, 2: 3}
+_CONDITION_FIELDS = ('supply_pressure_measured_pa', 'return_pressure_measured_pa',
+                     'fluid_temperature_measured_k')
+
+
+def worst_level(levels) -> int:
+    """The most severe of ``levels`` (:data:`SEVERITY`)."""
+    return max(levels, key=lambda lv: SEVERITY[int(lv)], default=0)
 
 
 @dataclasses.dataclass
@@ -86,10 +108,13 @@ class HealthReport:
     samples_used: int = 0
     items: dict = dataclasses.field(default_factory=dict)   # name -> Item
 
+    conditions: dict = dataclasses.field(default_factory=dict)
+
     def to_dict(self) -> dict:
         d = {k: getattr(self, k) for k in (
             'stamp_ns', 'kind', 'method', 'radial_clearance_m', 'radial_clearance_std_m',
-            'overlap_m', 'overlap_std_m', 'pressure_residual_pa', 'samples_used', 'message')}
+            'overlap_m', 'overlap_std_m', 'pressure_residual_pa', 'samples_used', 'message',
+            'conditions')}
         d['level'] = LEVEL_NAMES[self.level]
         d['estimates'] = {k: v.to_dict() for k, v in self.items.items()}
         return d
@@ -98,7 +123,21 @@ class HealthReport:
 def _wear_items(est: HealthEstimate, level: int, text: str, limits: HealthThresholds,
                 stamp_ns: int) -> dict:
     """Clearance and overlap items of a wear estimate, each with its own level."""
+    if est.mismatch:
+        why = f'cannot be assessed: {est.mismatch}'
+        out = {n: Item(n, float(v), float(s), CANNOT_ASSESS, why, est.method, stamp_ns)
+               for n, v, s in (('radial_clearance_m', est.radial_clearance_m,
+                                est.radial_clearance_std_m),
+                               ('overlap_supply_m', est.overlap_m, est.overlap_std_m))}
+        for n, (v, s) in est.extra.items():
+            if n in ITEMS:
+                out[n] = Item(n, float(v), float(s), CANNOT_ASSESS, why, est.method, stamp_ns)
+        return out
     out = {}
+    for n, (v, s) in est.extra.items():
+        if n in ITEMS:
+            lv, why = classify_fault(n, v, s, limits)
+            out[n] = Item(n, float(v), float(s), lv, why, est.method, stamp_ns)
     for name, v, s, warn, err, sign in (
             ('radial_clearance_m', est.radial_clearance_m, est.radial_clearance_std_m,
              limits.clearance_warn_m, limits.clearance_error_m, 1.0),
@@ -143,11 +182,13 @@ class MonitorCore:
     valve_test : ValveTestEstimator or None, optional
         None: the diagnostic network is unavailable (``valve_test_error`` says why).
     faults : FaultModel or None, optional
+    valve_fit : ValveFitEstimator or None, optional
+        The settled valve test's estimator; None: unavailable (``valve_fit_error``).
     """
 
     def __init__(self, params: PlantParams, limits: HealthThresholds, window_s: float = 1.0,
                  update_period_s: float = 0.5, settle_s: float = 0.05, in_service=None,
-                 valve_test='default', faults='default'):
+                 valve_test='default', faults='default', valve_fit='default'):
         self.params = params
         self.limits = limits
         self.window_s = float(window_s)
@@ -169,6 +210,16 @@ class MonitorCore:
             except (OSError, ValueError) as exc:
                 faults, self.faults_error = None, ' '.join(str(exc).split())
         self.faults = faults
+        self.valve_fit_error = ''
+        if valve_fit == 'default':
+            try:
+                from eha_ros.health.valve_fit import ValveFitEstimator
+                valve_fit = ValveFitEstimator(params)
+            except (OSError, ValueError) as exc:
+                valve_fit, self.valve_fit_error = None, ' '.join(str(exc).split())
+        self.valve_fit = valve_fit
+        self.readings = []            # the bench's readings of the conditions in a test
+        self.procedure = 'reference'
         self.samples = deque()
         self.next_ns = None
         self.mode = None              # None (in service), 'valve-test', 'preflight'
@@ -205,30 +256,50 @@ class MonitorCore:
         arr = np.array([x[1:] for x in self.samples], dtype=float).reshape(-1, 3)
         return [Job(self, 'in-service', t_ns, arr)]
 
+    def _read_conditions(self, s) -> None:
+        r = [float(getattr(s, f, float('nan'))) for f in _CONDITION_FIELDS]
+        if all(np.isfinite(r)):
+            self.readings.append(r)
+
+    def _conditions(self):
+        """The mean measured conditions of the test so far, or None (none recorded)."""
+        return mean_conditions(self.readings) if self.readings else None
+
     def _on_valve_test(self, t_ns, s) -> list:
         if self.mode != 'valve-test':
             self.mode = 'valve-test'
             self.curves, self.curves_done = {}, []
             self.samples.clear()
+            self.readings = []
+            # ActuatorState.VALVE_TEST_REFERENCE = 0 (also where a recording has no field),
+            # VALVE_TEST_SETTLED = 1
+            self.procedure = 'settled' if int(getattr(s, 'valve_test_procedure', 0)) else \
+                'reference'
+        self._read_conditions(s)
         if not s.valve_test_point_end:
             return []
+        n_points = (valve_test_schedule('settled')['n_points'] if self.procedure == 'settled'
+                    else MAP_POINTS)
         q = float(s.load_flow_m3_s)
         curve = self.curves.setdefault(q, {})
         curve[int(s.valve_test_point)] = (float(s.spool_position_m), float(s.p12_pa))
-        if int(s.valve_test_point) != MAP_POINTS - 1:
+        if int(s.valve_test_point) != n_points - 1:
             return []
-        if len(curve) < MAP_POINTS:
-            return [Job(self, 'valve-test-incomplete', t_ns, (q, len(curve)))]
+        if len(curve) < n_points:
+            return [Job(self, 'valve-test-incomplete', t_ns, (q, len(curve), n_points))]
         pts = [curve[k] for k in sorted(curve)]
         self.curves_done.append((q, np.array([x for x, _ in pts]),
                                  np.array([p for _, p in pts])))
-        return [Job(self, 'valve-test', t_ns, list(self.curves_done))]
+        return [Job(self, 'valve-test', t_ns, (self.procedure, list(self.curves_done),
+                                               self._conditions()))]
 
     def _on_preflight(self, t_ns, s) -> list:
         if self.mode != 'preflight':
             self.mode = 'preflight'
             self.record = {}
             self.samples.clear()
+            self.readings = []
+        self._read_conditions(s)
         k = int(s.valve_test_point)
         self.record[k] = (float(s.coil_current_a), float(s.spool_position_m),
                           float(s.flapper_position_m), float(s.p12_pa),
@@ -238,7 +309,7 @@ class MonitorCore:
         n = k + 1
         rec = dict(self.record)
         self.record = {}
-        return [Job(self, 'preflight', t_ns, (n, rec))]
+        return [Job(self, 'preflight', t_ns, (n, rec, self._conditions()))]
 
     # --- estimates -------------------------------------------------------------------------
     def make_report(self, job: Job) -> HealthReport:
@@ -246,26 +317,41 @@ class MonitorCore:
         lim = self.limits
         t = job.stamp_ns
         if job.kind == 'valve-test-incomplete':
-            q, n = job.data
+            q, n, n_points = job.data
             return HealthReport(t, 'valve-test', ValveTestEstimator.method, ERROR,
                                 f'no estimate: valve test curve at q = {q:g} m^3/s has {n} of '
-                                f'{MAP_POINTS} points (states lost)')
+                                f'{n_points} points (states lost)')
         if job.kind == 'preflight':
             return self._preflight_report(job)
         try:
             if job.kind == 'in-service':
                 a = job.data
                 est = self.in_service.estimate(a[:, 0], a[:, 1], a[:, 2])
-            elif self.valve_test is None:
-                raise ParameterError(f'the diagnostic network is not usable: '
-                                     f'{self.valve_test_error}')
             else:
-                est = self.valve_test.estimate(job.data)
+                procedure, curves, conditions = job.data
+                if procedure == 'settled':
+                    if self.valve_fit is None:
+                        raise ParameterError(f'the settled valve test\'s fit is not usable: '
+                                             f'{self.valve_fit_error}')
+                    est = self.valve_fit.estimate(curves, conditions)
+                elif self.valve_test is None:
+                    raise ParameterError(f'the diagnostic network is not usable: '
+                                         f'{self.valve_test_error}')
+                else:
+                    est = self.valve_test.estimate(curves)
+                    if conditions is not None:
+                        est.conditions = conditions.as_dict()
         except ValueError as exc:
             method = (self.in_service.method if job.kind == 'in-service'
+                      else 'settled-valve-fit' if job.data[0] == 'settled'
                       else ValveTestEstimator.method)
             return HealthReport(t, job.kind, method, ERROR, f'no estimate: {exc}')
-        level, text = classify(est, lim)
+        if est.mismatch:
+            level, text = CANNOT_ASSESS, f'cannot be assessed: {est.mismatch}'
+        else:
+            level, text = classify(est, lim)
+        if est.note:
+            text = f'{text} ({est.note}; deviations widened)'
         items = _wear_items(est, level, text, lim, t)
         if job.kind == 'valve-test':
             self.have_valve_test = True
@@ -273,12 +359,13 @@ class MonitorCore:
             self.items.update(items)
         return HealthReport(t, job.kind, est.method, level, text, est.radial_clearance_m,
                             est.radial_clearance_std_m, est.overlap_m, est.overlap_std_m,
-                            est.pressure_residual_pa, est.samples_used, items)
+                            est.pressure_residual_pa, est.samples_used, items,
+                            dict(est.conditions))
 
     def _preflight_report(self, job: Job) -> HealthReport:
         from eha_ros.health.preflight import FAULTS
         t = job.stamp_ns
-        n, rec = job.data
+        n, rec, conditions = job.data
         method = 'preflight-network'
         if self.faults is None:
             return HealthReport(t, 'preflight', method, ERROR,
@@ -293,30 +380,42 @@ class MonitorCore:
         arr = np.array([rec[k] for k in range(n)])
         record = {name: arr[:, j] for j, name in enumerate(PREFLIGHT_SIGNALS)}
         record['command_a'] = preflight_command(n, PREFLIGHT_TICK_S, self.params.current_limit_a)
-        est = self.faults.estimate(record)
+        if conditions is None:
+            from eha_ros.physics.bench import load_bench, true_conditions
+            c = true_conditions(self.params, load_bench(params=self.params))
+            conditions = dataclasses.replace(c, assumed=True)
+        est = self.faults.estimate(record, conditions)
+        mismatch = getattr(est, 'mismatch', '')
+        note = getattr(est, 'note', '') or (
+            'test conditions not measured: nominal assumed' if conditions.assumed else '')
         items = {}
         for f in FAULTS:
             if f.name in _WEAR:
                 continue
             v, sd = est.values[f.name], est.stds[f.name]
-            lv, why = classify_fault(f.name, v, sd, self.limits)
+            if mismatch:
+                lv, why = CANNOT_ASSESS, f'cannot be assessed: {mismatch}'
+            else:
+                lv, why = classify_fault(f.name, v, sd, self.limits)
+            if note:
+                why = f'{why} ({note}; deviations widened)'
             items[f.name] = Item(f.name, v, sd, lv, why, method, t)
-        if not self.have_valve_test:  # its own reading of the wear, where no valve test did
-            wear = HealthEstimate(est.values['radial_clearance_m'],
-                                  est.stds['radial_clearance_m'],
-                                  est.values['overlap_supply_m'], est.stds['overlap_supply_m'],
-                                  0.0, n, method)
-            lv, why = classify(wear, self.limits)
-            items.update(_wear_items(wear, lv, why, self.limits, t))
         self.items.update(items)
-        # the verdict covers every parameter known, the valve test's wear included
-        worst = max(self.items.values(), key=lambda i: i.level)
-        flagged = [i.name for i in self.items.values() if i.level > OK]
-        if flagged:
+        # the verdict covers every parameter known, the valve test's included
+        worst = max(self.items.values(), key=lambda i: SEVERITY[i.level])
+        flagged = [i.name for i in self.items.values() if i.level in (WARN, ERROR)]
+        unknown = [i.name for i in self.items.values() if i.level == CANNOT_ASSESS]
+        if mismatch:
+            text = f'pre-flight check cannot be assessed: {mismatch}'
+        elif flagged:
             text = f'pre-flight check: {", ".join(flagged)} degraded; {worst.message}'
+        elif unknown:
+            text = (f'pre-flight check: no degradation shown; {", ".join(unknown)} cannot be '
+                    f'assessed; {worst.message}')
         else:
             text = 'pre-flight check: no degradation shown'
         c, o = self.items.get('radial_clearance_m'), self.items.get('overlap_supply_m')
         return HealthReport(t, 'preflight', method, worst.level, text,
                             c.value if c else 0.0, c.std if c else 0.0,
-                            o.value if o else 0.0, o.std if o else 0.0, 0.0, n, items)
+                            o.value if o else 0.0, o.std if o else 0.0, 0.0, n, items,
+                            conditions.as_dict())

@@ -34,6 +34,15 @@ class HealthEstimate:
     #: Posterior probabilities (in-service grid posterior) that the wear is beyond the warn and
     #: error limits of ``config/health.yaml``: ``{'clearance_warn': p, ...}``; empty otherwise.
     beyond: dict = dataclasses.field(default_factory=dict)
+    #: Why the model does not explain the data ('' when it does): the estimate cannot be
+    #: assessed, its deviations are widened (:data:`CANNOT_ASSESS`).
+    mismatch: str = ''
+    #: Further estimates ``{name: (value, std)}`` and figures of the method.
+    extra: dict = dataclasses.field(default_factory=dict)
+    #: The test conditions the estimate used (measured, or ``assumed``), ``{}`` in service.
+    conditions: dict = dataclasses.field(default_factory=dict)
+    #: A caveat that does not refuse the estimate (e.g. nominal conditions assumed).
+    note: str = ''
 
 
 @dataclasses.dataclass(frozen=True)

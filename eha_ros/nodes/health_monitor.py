@@ -38,7 +38,7 @@ from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
 from rclpy.node import Node
 
-from eha_ros.graph import LEVEL_ERROR, LEVEL_NAMES, LEVEL_OK, LEVEL_WARN
+from eha_ros.graph import LEVEL_CANNOT_ASSESS, LEVEL_ERROR, LEVEL_NAMES, LEVEL_OK, LEVEL_WARN
 from eha_ros.msg import ActuatorState, HealthStatus
 from eha_ros.physics import ParameterError, load_params
 from eha_ros.health.posterior import InServiceEstimator
@@ -50,8 +50,9 @@ from .common import (advertise, apply_realtime_settings, declare, declare_realti
                      TOPIC_HEALTH, TOPIC_STATE, validator)
 from .handshake import Handshake
 
+#: CANNOT_ASSESS is a WARN on /diagnostics (a maintainer must look), with its reason.
 _LEVEL_BYTES = {LEVEL_OK: DiagnosticStatus.OK, LEVEL_WARN: DiagnosticStatus.WARN,
-                LEVEL_ERROR: DiagnosticStatus.ERROR}
+                LEVEL_ERROR: DiagnosticStatus.ERROR, LEVEL_CANNOT_ASSESS: DiagnosticStatus.WARN}
 #: Prefix of this node's DiagnosticStatus names.
 STATUS_PREFIX = 'health_monitor: '
 

@@ -27,9 +27,13 @@ it publishes ``/clock`` and the state of tick k, and advances to tick k+1 only w
 time it publishes tick k again.
 
 Valve test (``valve_test: true``): before operating, the plant runs the diagnostic valve test of
-:mod:`eha_ros.physics.maintenance` - the reference's map sweep at ``valve_test_flows_m3_s``, one
-tick at a time, the jack clamped - and reports it with status ``STATUS_VALVE_TEST``; the health
-monitor reads the wear from those curves.  Pre-flight check (``preflight_check: true``): then
+:mod:`eha_ros.physics.maintenance` - its ``valve_test_procedure`` (the reference's map sweep, or
+the settled test) at ``valve_test_flows_m3_s``, one tick at a time, the jack clamped - and
+reports it with status ``STATUS_VALVE_TEST`` and the procedure in ``valve_test_procedure``; the
+health monitor reads the wear from those curves.  Every state carries the test bench's
+readings of the conditions (supply and return pressure, fluid temperature:
+:class:`eha_ros.physics.bench.ConditionSensors`, seeded by ``seed``; one reading at start and
+one per tick).  Pre-flight check (``preflight_check: true``): then
 (after the valve test, if any) the plant drives the coil open loop along
 :data:`eha_ros.physics.maintenance.PREFLIGHT_PROFILE` from the actuator at rest, the jack free
 and the controller's commands ignored, and reports it with status ``STATUS_PREFLIGHT``, the
@@ -59,7 +63,8 @@ from eha_ros.physics.events import EventSchedule, parse_event, PLANT_RUNTIME
 from eha_ros.physics.params import replace
 from eha_ros.physics.state import (CAVITATION, END_STOP, initial_state, OK,
                                    operating_condition)
-from eha_ros.physics.maintenance import PreflightCheck, ValveTest
+from eha_ros.physics.bench import ConditionSensors, load_bench
+from eha_ros.physics.maintenance import PreflightCheck, ValveTest, VALVE_TEST_PROCEDURES
 
 from .common import (advertise, apply_realtime_settings, begin_timing, declare,
                      declare_physics, declare_realtime, EventChannel, MODES, ns_to_stamp,
@@ -122,6 +127,10 @@ class ServovalvePlant(Node):
         flows = declare(self, 'valve_test_flows_m3_s',  # those of the valve_test scenario
                         list(get_scenario('valve_test').valve_test_flows_m3_s),
                         'valve test: imposed load flows [m^3/s], one P12 curve each')
+        procedure = declare(self, 'valve_test_procedure', 'reference', 'valve test: settled '
+                            '(every point held 0.1 s, fitted by the valve model) or reference '
+                            '(the reference\'s 10 ms map transient)',
+                            choices=VALVE_TEST_PROCEDURES)
         preflight = declare(self, 'preflight_check', False, 'run the pre-flight check (open-'
                             'loop current steps and sines, jack free) before operating')
         self.max_catch_up = declare(self, 'max_catch_up', 50, 'realtime: most late ticks '
@@ -144,7 +153,14 @@ class ServovalvePlant(Node):
             if self.fluid is not None:
                 self.fluid.check_params(replace(params, **ev.as_dict()))
         self.steps_per_tick = period_ns // self.plant.dt_ns
-        self.valve_test = ValveTest(flows, period_ns, dt_s) if valve_test else None
+        if procedure not in VALVE_TEST_PROCEDURES:
+            raise ParameterError(f'valve_test_procedure {procedure!r} must be one of '
+                                 f'{", ".join(VALVE_TEST_PROCEDURES)}')
+        self.valve_test = (ValveTest.of(procedure, period_ns, dt_s, flows) if valve_test
+                           else None)
+        # the test bench's transducers of the conditions: one reading per published tick
+        self.sensors = ConditionSensors(seed, load_bench(params=base))
+        self.conditions = self.sensors.read(params)[0]
         self.test_tick = 0
         self.test_sample = None
         if self.valve_test is not None:
@@ -189,7 +205,8 @@ class ServovalvePlant(Node):
     # parameters --------------------------------------------------------------------------
     def _on_set(self, changes):
         frozen = {'model', 'dt_s', 'rate_hz', 'mode', 'seed', 'params_file', 'valve_test',
-                  'valve_test_flows_m3_s', 'preflight_check', 'handshake_nodes',
+                  'valve_test_flows_m3_s', 'valve_test_procedure', 'preflight_check',
+                  'handshake_nodes',
                   'handshake_timeout_s', 'start_delay_s', 'events', 'thread_priority',
                   'cpu_affinity', 'lock_memory'} & set(changes)
         if frozen:
@@ -244,6 +261,7 @@ class ServovalvePlant(Node):
             self.get_logger().error(str(exc))
             return True
         self.ticks += 1
+        self.conditions = self.sensors.read(self.plant.params)[0]
         if self.duration_s and self.plant.time_ns >= round(self.duration_s * 1e9):
             self.done = True
             self.get_logger().info(f'scenario complete at t = {self.plant.time_s:.6g} s')
@@ -262,6 +280,11 @@ class ServovalvePlant(Node):
         ns_to_stamp(msg.header.stamp, self.plant.time_ns)
         msg.valve_test_point = 0
         msg.valve_test_point_end = False
+        msg.valve_test_procedure = 0
+        c = self.conditions
+        msg.supply_pressure_measured_pa = float(c[0])
+        msg.return_pressure_measured_pa = float(c[1])
+        msg.fluid_temperature_measured_k = float(c[2])
         msg.jack_position_m = s['jack_position_m']
         msg.jack_position_measured_m = s['jack_position_measured_m']
         msg.jack_velocity_m_s = s['jack_velocity_m_s']
@@ -285,6 +308,9 @@ class ServovalvePlant(Node):
             msg.jack_velocity_m_s = 0.0
             msg.valve_test_point = t.point
             msg.valve_test_point_end = t.point_end
+            msg.valve_test_procedure = (ActuatorState.VALVE_TEST_SETTLED
+                                        if self.valve_test.procedure == 'settled'
+                                        else ActuatorState.VALVE_TEST_REFERENCE)
         preflight = (self.preflight is not None and t is None
                      and self.preflight_tick > 0 and self.preflight_last == self.ticks)
         if preflight:

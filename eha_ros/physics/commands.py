@@ -82,6 +82,7 @@ class Scenario:
     com_times_s: tuple = ()
     com_values_m: tuple = ()
     valve_test_flows_m3_s: tuple = ()
+    valve_test_procedure: str = 'reference'
     preflight_check: bool = False
     description: str = ''
     events: tuple = ()
@@ -119,6 +120,10 @@ class Scenario:
                 raise ParameterError(f'{where}: com_times_s must be finite and increasing')
         if not np.all(np.isfinite(np.asarray(self.valve_test_flows_m3_s, dtype=float))):
             raise ParameterError(f'{where}: valve_test_flows_m3_s must be finite')
+        from .maintenance import VALVE_TEST_PROCEDURES
+        if self.valve_test_procedure not in VALVE_TEST_PROCEDURES:
+            raise ParameterError(f'{where}: valve_test_procedure {self.valve_test_procedure!r} '
+                                 f'must be one of {", ".join(VALVE_TEST_PROCEDURES)}')
         from .events import node_events
         object.__setattr__(self, 'events', node_events(where, self.events))
 
@@ -198,7 +203,8 @@ def _parse_scenarios(path: Path) -> dict[str, Scenario]:
                 raise ParameterError(f'{path}: scenario {name}: preflight_check must be true or '
                                      'false')
         for key, value in list(kw.items()):
-            if key not in ('waveform', 'description', 'preflight_check', 'events') + _TUPLES:
+            if key not in ('waveform', 'description', 'preflight_check', 'events',
+                           'valve_test_procedure') + _TUPLES:
                 try:
                     kw[key] = float(value)
                 except (TypeError, ValueError):

@@ -1,8 +1,19 @@
 """Diagnostic valve test: the characteristic-map sweep run on the plant, tick by tick.
 
-The diagnostic network recognises wear from the curves of the reference's map procedure
-(section 5.1): the spool held at each of the 133 positions of :func:`.maps.spool_grid`, the
-load flow imposed, both chamber pressures from zero, P12 read after ``MAP_HOLD_S`` = 1e-2 s.
+Two procedures (:data:`VALVE_TEST_PROCEDURES`):
+
+``reference``
+    The reference's map procedure (section 5.1), reproduced as it is: the spool held at each
+    of the 133 positions of :func:`.maps.spool_grid`, the load flow imposed, both chamber
+    pressures from zero, P12 read after ``MAP_HOLD_S`` = 1e-2 s.  The diagnostic network
+    recognises wear from these curves.  The transient has not settled near null, so the bulk
+    modulus (entrained air) enters its curves directly.
+``settled``
+    The same hold, long enough to settle: ``SETTLED_POINTS`` = 41 spool positions per curve,
+    each held ``SETTLED_HOLD_S`` = 0.1 s, at ``SETTLED_FLOWS_M3_S`` (blocked ports, then three
+    flows).  The pressures at the end of the hold are the steady map
+    (:func:`.maps.steady_map`) the valve model is fitted to, which the bulk modulus does not
+    enter (:mod:`eha_ros.health.valve_fit`); 16.4 s in all.
 A rig reproduces it as a maintenance test - the jack ports switched to a flow-controlled test
 circuit, the spool positioned point by point - and the plant does the same when asked: during
 the test the jack stays where it is (clamped) and, at every tick, the plant reports the
@@ -23,7 +34,9 @@ import numpy as np
 from .maps import spool_grid, transient_map
 from .params import ParameterError, PlantParams
 
-__all__ = ['MAP_POINTS', 'MAP_HOLD_S', 'ValveTest', 'ValveTestSample', 'PREFLIGHT_PROFILE',
+__all__ = ['MAP_POINTS', 'MAP_HOLD_S', 'SETTLED_POINTS', 'SETTLED_HOLD_S', 'SETTLED_FLOWS_M3_S',
+           'VALVE_TEST_PROCEDURES', 'valve_test_schedule', 'ValveTest', 'ValveTestSample',
+           'PREFLIGHT_PROFILE',
            'PREFLIGHT_S', 'PREFLIGHT_TICK_S', 'PREFLIGHT_SIGNALS', 'PreflightCheck',
            'preflight_command', 'run_preflight']
 
@@ -31,6 +44,36 @@ __all__ = ['MAP_POINTS', 'MAP_HOLD_S', 'ValveTest', 'ValveTestSample', 'PREFLIGH
 MAP_POINTS = 133
 #: Hold of every point [s]: the reference's map transient.
 MAP_HOLD_S = 1e-2
+#: Spool positions of a settled curve: the sinh grid of :func:`.maps.spool_grid`, 2.2 um apart
+#: at null, where clearance and overlap show.
+SETTLED_POINTS = 41
+#: Hold of every settled point [s]: the blocked-port transient of the tightest valve
+#: (clearance 1 um) from zero pressure is within 0.1 MPa of its steady value after 0.1 s,
+#: wider valves within 0.01 MPa.
+SETTLED_HOLD_S = 0.1
+#: Flows of the settled test [m^3/s]: blocked ports (the pressure gain, the clearance and the
+#: piston leakage), a small flow (the null region again, at another balance), then half and
+#: the whole map flow (the metering edges' discharge, so Khsv).
+SETTLED_FLOWS_M3_S = (0.0, 5e-6, 3e-5, 6e-5)
+#: Valve-test procedures (the plant's ``valve_test_procedure``).
+VALVE_TEST_PROCEDURES = ('settled', 'reference')
+
+
+def valve_test_schedule(procedure: str, flows_m3_s=None) -> dict:
+    """``{'flows_m3_s', 'hold_s', 'n_points'}`` of a procedure; ``flows_m3_s`` replaces its
+    default flows (the reference's: those of the ``valve_test`` scenario)."""
+    if procedure == 'settled':
+        flows = SETTLED_FLOWS_M3_S if flows_m3_s is None else flows_m3_s
+        return {'flows_m3_s': tuple(float(q) for q in flows), 'hold_s': SETTLED_HOLD_S,
+                'n_points': SETTLED_POINTS}
+    if procedure == 'reference':
+        if flows_m3_s is None:
+            from .commands import get_scenario
+            flows_m3_s = get_scenario('valve_test').valve_test_flows_m3_s
+        return {'flows_m3_s': tuple(float(q) for q in flows_m3_s), 'hold_s': MAP_HOLD_S,
+                'n_points': MAP_POINTS}
+    raise ParameterError(f'valve test procedure {procedure!r} must be one of '
+                         f'{", ".join(VALVE_TEST_PROCEDURES)}')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,10 +104,17 @@ class ValveTest:
         Hold of each point [s].
     n_points : int
         Spool positions per curve.
+    procedure : str
+        ``'reference'`` or ``'settled'`` (:data:`VALVE_TEST_PROCEDURES`), reported with the
+        samples.
     """
 
     def __init__(self, flows_m3_s, tick_ns: int, dt_s: float, hold_s: float = MAP_HOLD_S,
-                 n_points: int = MAP_POINTS):
+                 n_points: int = MAP_POINTS, procedure: str = 'reference'):
+        if procedure not in VALVE_TEST_PROCEDURES:
+            raise ParameterError(f'valve test procedure {procedure!r} must be one of '
+                                 f'{", ".join(VALVE_TEST_PROCEDURES)}')
+        self.procedure = procedure
         flows = np.asarray(flows_m3_s, dtype=float).ravel()
         if flows.size == 0:
             raise ParameterError('valve test: valve_test_flows_m3_s needs at least one flow')
@@ -88,6 +138,12 @@ class ValveTest:
 
     def grid(self, params: PlantParams) -> np.ndarray:
         return spool_grid(self.n_points, params.spool_stroke_m)
+
+    @classmethod
+    def of(cls, procedure: str, tick_ns: int, dt_s: float, flows_m3_s=None) -> 'ValveTest':
+        """The test of ``procedure`` (:func:`valve_test_schedule`)."""
+        s = valve_test_schedule(procedure, flows_m3_s)
+        return cls(s['flows_m3_s'], tick_ns, dt_s, s['hold_s'], s['n_points'], procedure)
 
     def sample(self, k: int, params: PlantParams) -> ValveTestSample:
         """The state at the end of tick ``k`` (1 .. ``n_ticks``) with the wear of ``params``."""

@@ -53,7 +53,7 @@ MAX_CASES = 100_000
 #: Keys a spec may have.
 KEYS = ('procedure', 'scenario', 'models', 'seeds', 'noise', 'parameters', 'random', 'tie',
         'cases', 'compare', 'large_dts', 'dt_s', 'signals', 'signal_dt_s', 'metrics',
-        'flows_m3_s')
+        'flows_m3_s', 'valve_test_procedure', 'pressure_noise')
 #: Plant step of every procedure [s] (the reference's, and the in-loop comparison's).
 DT_S = 1e-6
 
@@ -144,6 +144,10 @@ class Spec:
     #: client's, shipped with every batch, so that a worker never uses another config.
     base: dict = dataclasses.field(default_factory=dict)
     source: str = 'spec'
+    #: valve_test: ``settled`` or ``reference`` (:data:`eha_ros.physics.maintenance.
+    #: VALVE_TEST_PROCEDURES`), and the relative measurement noise on its pressures
+    valve_test_procedure: str = 'reference'
+    pressure_noise: float = 0.0
     _points: list | None = dataclasses.field(default=None, repr=False)
 
     # --- the cases ------------------------------------------------------------------------
@@ -325,7 +329,8 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
         raise SpecError(f'{where}: procedure valve_test has no noise (its maps are the '
                         'noise-free transients)')
     seeds = _seeds(raw.get('seeds', [0]), where)
-    if not noise and len(seeds) > 1:
+    # the valve test's seed drives the bench's sensors (conditions, pressure noise)
+    if not noise and len(seeds) > 1 and procedure != 'valve_test':
         raise SpecError(f'{where}: {len(seeds)} seeds with noise: false would repeat every '
                         'case (the seed only drives the noise)')
     grid = {}
@@ -428,9 +433,22 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
         if procedure != 'valve_test':
             raise SpecError(f'{where}: flows_m3_s is for procedure valve_test')
         flows = _list_of_floats('flows_m3_s', flows, where)
+    vtp = raw.get('valve_test_procedure', 'reference')
+    pnoise = raw.get('pressure_noise', 0.0)
+    if procedure != 'valve_test' and ('valve_test_procedure' in raw or 'pressure_noise' in raw):
+        raise SpecError(f'{where}: valve_test_procedure and pressure_noise are for procedure '
+                        'valve_test')
+    from eha_ros.physics.maintenance import VALVE_TEST_PROCEDURES
+    if vtp not in VALVE_TEST_PROCEDURES:
+        raise SpecError(f'{where}: valve_test_procedure {vtp!r} must be one of '
+                        f'{", ".join(VALVE_TEST_PROCEDURES)}')
+    if (isinstance(pnoise, bool) or not isinstance(pnoise, (int, float))
+            or not 0.0 <= pnoise <= 0.1):
+        raise SpecError(f'{where}: pressure_noise = {pnoise!r} must be a relative level in '
+                        '[0, 0.1]')
     spec = Spec(procedure, scenarios, tuple(models), seeds, noise, grid, random, dict(tie),
                 tuple(cases), compare, large_dts, dt_s, tuple(signals), signal_dt_s, metrics,
-                flows, dict(raw))
+                flows, dict(raw), valve_test_procedure=vtp, pressure_noise=float(pnoise))
     if base is None:
         from eha_ros.physics import default_params
         base = params_to_dict(default_params())

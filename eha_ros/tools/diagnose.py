@@ -42,6 +42,11 @@ METHODS = ('auto', 'test', 'network', 'preflight', 'steady')
 _STATE_FIELDS = ('status', 'sim_time_s', 'spool_position_m', 'load_flow_m3_s', 'p12_pa',
                  'valve_test_point', 'valve_test_point_end', 'coil_current_a',
                  'flapper_position_m', 'jack_position_m', 'jack_velocity_m_s')
+#: Fields a recording may lack (made before the plant reported them): the valve test is then
+#: the reference's, and the test conditions are not measured (nominal assumed, said so).
+_OPTIONAL_FIELDS = {'valve_test_procedure': 0, 'supply_pressure_measured_pa': math.nan,
+                    'return_pressure_measured_pa': math.nan,
+                    'fluid_temperature_measured_k': math.nan}
 
 
 def _recorded_health(path) -> list:
@@ -124,16 +129,20 @@ def diagnose(path, params=None, method: str = 'auto', window_s: float = 1.0,
     elif method == 'steady':
         keep = (status != STATUS_VALVE_TEST) & (status != STATUS_PREFLIGHT)
     states = {k: v[keep] for k, v in a.items()}
+    absent = [f for f in _OPTIONAL_FIELDS if f not in states]
+    for f in absent:
+        states[f] = np.full(states['stamp_ns'].size, _OPTIONAL_FIELDS[f])
     if states['stamp_ns'].size == 0:
         raise ParameterError(f'{path}: no {TOPIC_STATE} samples for method {method}')
     core = MonitorCore(params, limits, window_s, update_s, skip_s)
     reports = []
     snapshots = []   # every parameter's (value, std) after each report, as published
-    cols = [states[f] for f in _STATE_FIELDS]
+    fields = _STATE_FIELDS + tuple(_OPTIONAL_FIELDS)
+    cols = [states[f] for f in fields]
     stamps = states['stamp_ns']
     s = SimpleNamespace()
     for k in range(stamps.size):
-        for name, col in zip(_STATE_FIELDS, cols):
+        for name, col in zip(fields, cols):
             v = col[k]
             setattr(s, name, v.item() if hasattr(v, 'item') else v)
         for job in core.on_state(int(stamps[k]), s):
@@ -165,6 +174,10 @@ def diagnose(path, params=None, method: str = 'auto', window_s: float = 1.0,
            'radial_clearance_std_m': chosen.radial_clearance_std_m,
            'overlap_m': chosen.overlap_m, 'overlap_std_m': chosen.overlap_std_m,
            'pressure_residual_pa': chosen.pressure_residual_pa,
+           'conditions': dict(chosen.conditions),
+           'conditions_by_test': {r.kind: dict(r.conditions) for r in reports
+                                  if r.kind in test_kinds and r.conditions},
+           'conditions_in_recording': not absent,
            'estimates': {n: core.items[n].to_dict() for n in ITEMS if n in core.items},
            'not_estimated': [n for n in ITEMS if n not in core.items],
            'reports': len(reports), 'scheduled_in_service': core.scheduled}
@@ -200,6 +213,12 @@ def main(argv=None) -> int:
         print(json.dumps(r, allow_nan=False, default=_json_default))
     else:
         print(f'{r["file"]}: [{r["level"]}] {r["kind"]} ({r["method"]}): {r["message"]}')
+        c = r['conditions']
+        if c:
+            print(f'  conditions {"ASSUMED (not measured)" if c["assumed"] else "measured"}: '
+                  f'supply {c["supply_pressure_pa"] / 1e6:.3f} MPa, return '
+                  f'{c["return_pressure_pa"] / 1e6:.3f} MPa, fluid '
+                  f'{c["fluid_temperature_k"] - 273.15:.1f} degC')
         for name, e in r['estimates'].items():
             print(f'  {name:24s} {e["value"]:.6g} +- {e["std"]:.3g}  [{e["level"]}] '
                   f'({e["method"]})')

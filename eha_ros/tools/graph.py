@@ -60,7 +60,8 @@ PROG = 'eha-graph'
 
 #: Parameters the harness sets itself on every node; a params file or ``--set`` may not.
 MANAGED = frozenset(('mode', 'use_sim_time', 'handshake_nodes', 'duration_s', 'output',
-                     'valve_test', 'valve_test_flows_m3_s', 'events'))
+                     'valve_test', 'valve_test_flows_m3_s', 'valve_test_procedure',
+                     'events'))
 
 #: Params-file entries taken as the options' defaults: ``(node, parameter) -> option``.
 PROMOTED = {('command_generator', 'scenario'): 'scenario', ('servovalve_plant', 'model'): 'model',

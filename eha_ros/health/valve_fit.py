@@ -1,0 +1,241 @@
+"""Wear from the settled valve test (:mod:`eha_ros.physics.maintenance`, procedure
+``settled``): the valve model fitted to the measured curves at the measured test conditions.
+
+What is measured and what is not
+    The bench measures supply and return pressure and the fluid temperature
+    (:mod:`eha_ros.physics.bench`); the fit takes them as inputs (the fluid's viscosity and
+    density from its temperature law).  The settled pressures are the steady map
+    (:func:`eha_ros.physics.maps.steady_map`), which the bulk modulus does not enter.  The
+    metering edges' silting (Khsv, ``valve_degradation``) changes the open-spool curves at a
+    flow, and the jack's piston leakage (the test circuit's ports are the jack's) the
+    blocked-port curve near null, so both are fitted beside the radial clearance and the
+    overlap: four unknowns.
+
+Fit
+    Weighted least squares (:func:`scipy.optimize.least_squares`) of the steady P12 on the
+    points whose measured |P12| lies below 95 % of the measured supply-return difference (a
+    blocked chamber at a flow is beyond what a bench's relief lets through), weights
+    ``1 / (0.01 |P12| + 20 kPa)``: in units of a 1 % measurement noise.  Starts: the best
+    of a 4 x 4 grid of clearance and overlap, refined from the three best.
+
+Uncertainty
+    The fit's covariance (scaled by its own residual where that exceeds the weights' noise),
+    plus the conditions' sensor errors (calibration error uniform within the sensor's bias,
+    ``config/test_bench.yaml``) propagated through the fit's linearisation, times a
+    calibration factor per parameter (at least 1) that put 95 % of a drifted held-out set
+    within 2 sigma (``valve_fit.npz``, :mod:`eha_ros.training.valve_fit`).
+
+Model-mismatch test
+    ``chi``, the weighted RMS residual per degree of freedom, against the limit found on the
+    drifted held-out set; measured conditions outside the service range; Khsv beyond its
+    envelope.  Beyond any of them the estimate says the valve model does not explain the
+    test, and why, and the deviations widen to the range's (:attr:`HealthEstimate.mismatch`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from pathlib import Path
+
+import numpy as np
+
+from eha_ros.artefacts import ArtefactError, load_artefact, models_dir
+from eha_ros.health.thresholds import HealthEstimate
+from eha_ros.physics import PlantParams, default_params
+from eha_ros.physics.bench import CONDITIONS, Conditions, load_bench, with_conditions
+from eha_ros.physics.maps import WEAR_RANGES, steady_map
+from eha_ros.physics.params import ParameterError, replace
+
+__all__ = ['ValveFitEstimator', 'FitCalibration', 'load_calibration', 'FIT_NAMES',
+           'FIT_FILE', 'KHSV_RANGE', 'fit_curves']
+
+FIT_FILE = 'valve_fit.npz'
+REBUILD = 'eha_ros.training.valve_fit'
+#: The fitted parameters (plant names).
+FIT_NAMES = ('radial_clearance_m', 'overlap_supply_m', 'valve_degradation',
+             'leakage_coeff_m3_s_pa')
+#: Khsv range of the fit's bounds; the envelope the estimator is calibrated over is that of
+#: ``config/test_bench.yaml`` (``nuisance: valve_degradation``).
+KHSV_RANGE = (0.0, 0.6)
+_NOISE_REL = 0.01
+_NOISE_FLOOR_PA = 2e4
+_BAND = 0.95
+# fit variables: clearance [um], overlap [um], Khsv, jack leakage [1e-13 m^3/(s Pa)]
+_LO = np.array([0.3, -5.0, KHSV_RANGE[0], 0.0])
+_HI = np.array([10.0, 10.0, KHSV_RANGE[1], 100.0])
+_SCALE = np.array([1.0, 1.0, 0.05, 1.0])
+_UNITS = np.array([1e-6, 1e-6, 1.0, 1e-13])
+_START_C = (1.2, 2.5, 4.0, 5.5)
+_START_O = (-1.5, 1.0, 3.5, 6.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class FitCalibration:
+    """Calibration of :class:`ValveFitEstimator` from drifted held-out tests."""
+
+    factors: np.ndarray      # per FIT_NAMES, >= 1
+    chi_limit: float         # mismatch beyond this chi
+    meta: dict
+
+
+def load_calibration(path: Path | None = None) -> FitCalibration:
+    """The shipped calibration (:data:`FIT_FILE`)."""
+    path = Path(path) if path is not None else models_dir('health') / FIT_FILE
+    if not path.is_file():
+        raise ArtefactError(f'{path}: no valve-fit calibration: build it with python -m '
+                            f'{REBUILD}')
+    return _load_cached(str(path), path.stat().st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=4)
+def _load_cached(path: str, mtime_ns: int) -> FitCalibration:
+    (factors, chi), meta = load_artefact(Path(path), REBUILD)
+    if meta.get('kind') != 'valve_fit' or factors.shape != (len(FIT_NAMES),):
+        raise ArtefactError(f'{path}: not a valve-fit calibration')
+    return FitCalibration(np.asarray(factors, dtype=float), float(np.ravel(chi)[0]), meta)
+
+
+def _params(base: PlantParams, theta) -> PlantParams:
+    c, o, k, leak = theta
+    return replace(base, radial_clearance_m=float(c) * 1e-6, overlap_supply_m=float(o) * 1e-6,
+                   overlap_return_m=float(o) * 1e-6, valve_degradation=float(k),
+                   leakage_coeff_m3_s_pa=float(leak) * 1e-13)
+
+
+def _points(curves, cond: Conditions):
+    xs = np.concatenate([np.asarray(x, dtype=float) for _, x, _ in curves])
+    q = np.concatenate([np.full(np.size(x), float(qq)) for qq, x, _ in curves])
+    p12 = np.concatenate([np.asarray(p, dtype=float) for _, _, p in curves])
+    if not (np.all(np.isfinite(p12)) and np.all(np.isfinite(xs))):
+        raise ParameterError('valve test: the curves must be finite')
+    keep = np.abs(p12) < _BAND * (cond.supply_pressure_pa - cond.return_pressure_pa)
+    return xs[keep], q[keep], p12[keep], int(p12.size)
+
+
+def fit_curves(curves, cond: Conditions, base: PlantParams, bench=None) -> dict:
+    """The weighted least-squares fit (module docstring): ``theta`` (clearance [um],
+    overlap [um], Khsv, jack leakage [1e-13 m^3/(s Pa)]), its covariance, ``chi``, the RMS
+    residual [Pa], the points used and
+    the sensitivities of ``theta`` to each measured condition."""
+    from scipy.optimize import least_squares
+    b = bench or load_bench(params=base)
+    xs, q, p12, n_all = _points(curves, cond)
+    if xs.size < 10:
+        raise ParameterError(f'valve test: {xs.size} of {n_all} points lie inside the '
+                             'measured supply-return range: too few to fit')
+    w = 1.0 / (_NOISE_REL * np.abs(p12) + _NOISE_FLOOR_PA)
+    at = with_conditions(base, cond, b)
+
+    def resid(theta, p=at):
+        return (steady_map(xs, q, params=_params(p, theta))['p12_pa'] - p12) * w
+
+    starts = [np.array([c, o, 0.05, 2.0]) for c in _START_C for o in _START_O]
+    costs = [float(np.sum(resid(s) ** 2)) for s in starts]
+    best = None
+    for i in np.argsort(costs)[:3]:
+        r = least_squares(resid, starts[i], bounds=(_LO, _HI), x_scale=_SCALE,
+                          diff_step=1e-4, xtol=1e-10, ftol=1e-10)
+        if best is None or r.cost < best.cost:
+            best = r
+    theta = best.x
+    dof = max(xs.size - theta.size, 1)
+    chi = float(np.sqrt(2.0 * best.cost / dof))
+    jac = best.jac
+    jtj_inv = np.linalg.pinv(jac.T @ jac)
+    cov = jtj_inv * max(chi, 1.0) ** 2
+    # d theta / d condition, by the fit's linearisation: -(J'J)^-1 J' dr/dc
+    sens = {}
+    r0 = resid(theta)
+    for name, h in (('supply_pressure_pa', 2e4), ('return_pressure_pa', 2e3),
+                    ('fluid_temperature_k', 0.2)):
+        c2 = dataclasses.replace(cond, **{name: getattr(cond, name) + h})
+        dr = (resid(theta, with_conditions(base, c2, b)) - r0) / h
+        sens[name] = -(jtj_inv @ (jac.T @ dr))
+    # Khsv = 0 (clean edges) and no leakage are physical bounds, not failures of the fit
+    at_bound = bool(np.any(np.isclose(theta[:2], _LO[:2], rtol=0, atol=1e-6))
+                    or np.any(np.isclose(theta, _HI, rtol=0, atol=1e-6)))
+    return {'theta': theta, 'cov': cov, 'chi': chi, 'at_bound': at_bound,
+            'residual_pa': float(np.sqrt(np.mean((r0 / w) ** 2))), 'n_used': int(xs.size),
+            'n_points': n_all, 'sensitivity': sens}
+
+
+class ValveFitEstimator:
+    """Clearance, overlap and Khsv from a settled valve test at measured conditions (module
+    docstring), method ``settled-valve-fit``.
+
+    Parameters
+    ----------
+    params : PlantParams
+        Physics of the valve less what the fit estimates and the bench measures.
+    calibration : FitCalibration or None
+        Default: the shipped one; ``None`` with ``uncalibrated=True``: factors 1 and no chi
+        limit (used to build the calibration).
+    """
+
+    method = 'settled-valve-fit'
+
+    def __init__(self, params: PlantParams | None = None, calibration='default',
+                 bench=None):
+        self.params = params if params is not None else default_params()
+        self.bench = bench or load_bench(params=self.params)
+        self.calibration = load_calibration() if calibration == 'default' else calibration
+
+    def condition_std(self) -> np.ndarray:
+        """Standard deviation of each measured condition's error (uniform bias)."""
+        return np.array([self.bench.sensors[k].bias / np.sqrt(3.0) for k in CONDITIONS])
+
+    def estimate(self, curves, conditions: Conditions | None) -> HealthEstimate:
+        """``curves``: ``(q_m3_s, xs_m, p12_pa)`` per flow; ``conditions``: the measured
+        test conditions (``None``: nominal assumed, said so, deviations widened)."""
+        curves = [(float(q), np.asarray(x, dtype=float), np.asarray(p, dtype=float))
+                  for q, x, p in curves]
+        if not curves:
+            raise ParameterError('no complete valve-test curve')
+        notes = []
+        if conditions is None:
+            conditions = Conditions(self.params.supply_pressure_pa,
+                                    self.params.return_pressure_pa,
+                                    self.bench.fluid.temperature_k(
+                                        self.params.fluid_kinematic_viscosity_m2_s), True)
+        if conditions.assumed:
+            notes.append('test conditions not measured: nominal assumed')
+        f = fit_curves(curves, conditions, self.params, self.bench)
+        theta, cov = f['theta'], f['cov']
+        scale = _UNITS
+        var = np.diag(cov).copy()
+        cstd = self.condition_std()
+        if conditions.assumed:   # the whole service range is possible
+            cstd = np.array([(hi - lo) / np.sqrt(12.0)
+                             for lo, hi in (self.bench.service[k] for k in CONDITIONS)])
+        for j, name in enumerate(CONDITIONS):
+            var += (f['sensitivity'][name] * cstd[j]) ** 2
+        cal = self.calibration
+        factors = cal.factors if cal is not None else np.ones(len(FIT_NAMES))
+        std = np.sqrt(var) * factors * scale
+        value = theta * scale
+        mismatch = list(self.bench.outside_service(conditions))
+        k_lo, k_hi = self.bench.nuisance_range('valve_degradation', self.params)
+        if cal is not None and f['chi'] > cal.chi_limit:
+            mismatch.append(f'the valve model does not explain this test: residual '
+                            f'{f["residual_pa"] / 1e3:.1f} kPa RMS, chi {f["chi"]:.2f}, limit '
+                            f'{cal.chi_limit:.2f}')
+        if value[2] > k_hi + 2 * std[2]:
+            mismatch.append(f'Khsv {value[2]:.3f} beyond the calibrated envelope '
+                            f'[{k_lo:g}, {k_hi:g}]')
+        if f['at_bound']:
+            mismatch.append('the fit ran into a bound of its parameters')
+        if mismatch or conditions.assumed:
+            l_lo, l_hi = self.bench.nuisance_range('leakage_coeff_m3_s_pa', self.params)
+            spans = np.array([np.diff(WEAR_RANGES['radial_clearance_m'])[0],
+                              np.diff(WEAR_RANGES['overlap_m'])[0], k_hi - k_lo, l_hi - l_lo])
+            std = np.maximum(std, spans / np.sqrt(12.0))
+        return HealthEstimate(
+            radial_clearance_m=float(value[0]), radial_clearance_std_m=float(std[0]),
+            overlap_m=float(value[1]), overlap_std_m=float(std[1]),
+            pressure_residual_pa=f['residual_pa'], samples_used=f['n_used'],
+            method=self.method, mismatch='; '.join(mismatch),
+            extra={'valve_degradation': (float(value[2]), float(std[2])),
+                   'leakage_coeff_m3_s_pa': (float(value[3]), float(std[3])), 'chi': f['chi'],
+                   'points_in_band': f['n_used'], 'points': f['n_points']},
+            conditions=conditions.as_dict(), note='; '.join(notes))
