@@ -32,7 +32,9 @@ def test_fields_in_file_order():
         'header', 'jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_s',
         'spool_position_m', 'flapper_position_m', 'p1_pa', 'p2_pa', 'p12_pa',
         'load_flow_m3_s', 'coil_current_a', 'torque_motor_force_n', 'sim_time_s', 'tick',
-        'model', 'status', 'valve_test_point', 'valve_test_point_end']
+        'model', 'status', 'valve_test_point', 'valve_test_point_end', 'valve_test_procedure',
+        'supply_pressure_measured_pa', 'return_pressure_measured_pa',
+        'fluid_temperature_measured_k']
     assert ActuatorState.get_fields_and_field_types()['tick'] == 'uint64'
     assert ActuatorState.get_fields_and_field_types()['status'] == 'uint8'
     assert list(HealthStatus.get_fields_and_field_types()) == [
@@ -49,7 +51,9 @@ def test_constants():
     assert (ActuatorState.STATUS_OK, ActuatorState.STATUS_END_STOP,
             ActuatorState.STATUS_CAVITATION, ActuatorState.STATUS_DIVERGED,
             ActuatorState.STATUS_VALVE_TEST, ActuatorState.STATUS_PREFLIGHT) == (0, 1, 2, 3, 4, 5)
-    assert (HealthStatus.LEVEL_OK, HealthStatus.LEVEL_WARN, HealthStatus.LEVEL_ERROR) == (0, 1, 2)
+    assert (HealthStatus.LEVEL_OK, HealthStatus.LEVEL_WARN, HealthStatus.LEVEL_ERROR,
+            HealthStatus.LEVEL_CANNOT_ASSESS) == (0, 1, 2, 3)
+    assert (ActuatorState.VALVE_TEST_REFERENCE, ActuatorState.VALVE_TEST_SETTLED) == (0, 1)
     # Constants are also visible on instances.
     assert ActuatorState().STATUS_DIVERGED == 3
 

@@ -411,7 +411,10 @@ class PreflightProcedure(Procedure):
 
 
 class ValveTestProcedure(Procedure):
-    """The valve test's curves and the diagnostic network's estimate (module docstring)."""
+    """The valve test's curves and their estimate (module docstring): the reference's
+    transient read by the diagnostic network, or the settled test read by the valve fit at
+    the measured conditions (``valve_test_procedure``).  The seed draws the bench's sensor
+    errors on the conditions and the relative noise ``pressure_noise`` on every pressure."""
 
     SIGNALS = ('p12_pa',)
     RECORD_DT_S = 1.0
@@ -421,7 +424,12 @@ class ValveTestProcedure(Procedure):
     def metrics(cls, compare=None) -> tuple:
         return (('est_radial_clearance_m', 'float'), ('est_radial_clearance_std_m', 'float'),
                 ('est_overlap_m', 'float'), ('est_overlap_std_m', 'float'),
-                ('pressure_residual_pa', 'float'))
+                ('pressure_residual_pa', 'float'), ('est_valve_degradation', 'float'),
+                ('est_valve_degradation_std', 'float'), ('est_leakage_coeff_m3_s_pa', 'float'),
+                ('est_leakage_coeff_m3_s_pa_std', 'float'), ('chi', 'float'),
+                ('mismatch', 'bool'), ('measured_supply_pressure_pa', 'float'),
+                ('measured_return_pressure_pa', 'float'),
+                ('measured_fluid_temperature_k', 'float'))
 
     @classmethod
     def check(cls, spec, where: str) -> None:
@@ -430,44 +438,76 @@ class ValveTestProcedure(Procedure):
                               'signal_dt_s)')
         spec.signal_dt_s = 1e-3
         super().check(spec, where)
-        from eha_ros.health.valve_test import load_diagnostic
         try:
-            load_diagnostic()
+            if spec.valve_test_procedure == 'settled':
+                from eha_ros.health.valve_fit import load_calibration
+                load_calibration()
+            else:
+                from eha_ros.health.valve_test import load_diagnostic
+                load_diagnostic()
         except ValueError as exc:
             raise _spec_error(f'{where}: {exc}') from None
 
     def warm_up(self) -> None:
-        from eha_ros.health.valve_test import load_diagnostic
-        from eha_ros.physics.maps import transient_map
-        load_diagnostic()
-        transient_map([0.0], self.flows()[0], params=self.spec.point_params({}))
+        from eha_ros.physics.maps import steady_map, transient_map
+        p = self.spec.point_params({})
+        transient_map([0.0], self.flows()[0], params=p)
+        steady_map([0.0], 0.0, params=p)
+
+    def schedule(self) -> dict:
+        from eha_ros.physics.maintenance import valve_test_schedule
+        return valve_test_schedule(self.spec.valve_test_procedure, self.spec.flows_m3_s)
 
     def flows(self) -> tuple:
-        if self.spec.flows_m3_s:
-            return self.spec.flows_m3_s
-        from eha_ros.physics import get_scenario
-        return tuple(get_scenario('valve_test').valve_test_flows_m3_s)
+        return self.schedule()['flows_m3_s']
 
     def run_point(self, point) -> list:
+        from eha_ros.health.valve_fit import ValveFitEstimator
         from eha_ros.health.valve_test import ValveTestEstimator
         from eha_ros.physics import default_params
-        from eha_ros.physics.maintenance import MAP_POINTS
+        from eha_ros.physics.bench import load_bench, mean_conditions, measure_conditions
         from eha_ros.physics.maps import spool_grid, transient_map
         (c,) = point.cases
         t0 = time.perf_counter()
         row = {'case_id': c.case_id, 'model': c.model, 'dt_s': c.dt_s}
         try:
             p = point.params(self.spec)
-            grid = spool_grid(MAP_POINTS, p.spool_stroke_m)
-            curves = [(q, grid, np.asarray(transient_map(grid, q, params=p, dt_s=c.dt_s)
-                                           ['p12_pa'], dtype=float)) for q in self.flows()]
-            est = ValveTestEstimator(replace(default_params(), noise_std_a=0.0)).estimate(
-                curves)
+            sch = self.schedule()
+            grid = spool_grid(sch['n_points'], p.spool_stroke_m)
+            rng = np.random.default_rng([int(point.seed), 0x9E55])
+            curves = []
+            for q in sch['flows_m3_s']:
+                p12 = np.asarray(transient_map(grid, q, params=p, t_end_s=sch['hold_s'],
+                                               dt_s=c.dt_s)['p12_pa'], dtype=float)
+                if self.spec.pressure_noise:
+                    p12 = p12 * (1.0 + self.spec.pressure_noise
+                                 * rng.standard_normal(p12.shape))
+                curves.append((q, grid, p12))
+            nominal = replace(default_params(), noise_std_a=0.0)
+            # as the plant reports them at 1 kHz: one reading at start, one per test tick
+            n_ticks = int(round(sch['hold_s'] * 1e3)) * sch['n_points'] * len(curves)
+            cond = mean_conditions(measure_conditions(p, point.seed, n_ticks + 1,
+                                                      load_bench(params=nominal))[1:])
+            if self.spec.valve_test_procedure == 'settled':
+                est = ValveFitEstimator(nominal).estimate(curves, cond)
+                k, k_std = est.extra['valve_degradation']
+                leak, leak_std = est.extra['leakage_coeff_m3_s_pa']
+                chi = est.extra['chi']
+            else:
+                est = ValveTestEstimator(nominal).estimate(curves)
+                k = k_std = leak = leak_std = chi = float('nan')
             row.update(status='ok', error=None,
                        est_radial_clearance_m=est.radial_clearance_m,
                        est_radial_clearance_std_m=est.radial_clearance_std_m,
                        est_overlap_m=est.overlap_m, est_overlap_std_m=est.overlap_std_m,
-                       pressure_residual_pa=est.pressure_residual_pa)
+                       pressure_residual_pa=est.pressure_residual_pa,
+                       est_valve_degradation=k, est_valve_degradation_std=k_std,
+                       est_leakage_coeff_m3_s_pa=leak, est_leakage_coeff_m3_s_pa_std=leak_std,
+                       chi=chi,
+                       mismatch=bool(est.mismatch),
+                       measured_supply_pressure_pa=cond.supply_pressure_pa,
+                       measured_return_pressure_pa=cond.return_pressure_pa,
+                       measured_fluid_temperature_k=cond.fluid_temperature_k)
             if self.spec.signals:
                 row['signal_p12_pa'] = np.concatenate([cv[2] for cv in curves])
         except Exception as exc:

@@ -101,13 +101,14 @@ def calibrate(table, cases, factors_used) -> tuple:
     ok = np.array(table.column('status').to_pylist()) == 'ok'
     mis = np.array(table.column('mismatch').to_pylist(), dtype=bool) & ok
     keep = ok & ~mis
-    truth = np.array([[c['radial_clearance_m'], c['overlap_supply_m'],
-                       c.get('valve_degradation', 0.0)] for c in cases])
+    p = default_params()
+    truth = np.array([[c.get(n, getattr(p, n)) for n in FIT_NAMES] for c in cases])
     est = np.stack([np.array(table.column(k).to_pylist(), dtype=float) for k in (
-        'est_radial_clearance_m', 'est_overlap_m', 'est_valve_degradation')], axis=1)
+        'est_radial_clearance_m', 'est_overlap_m', 'est_valve_degradation',
+        'est_leakage_coeff_m3_s_pa')], axis=1)
     std = np.stack([np.array(table.column(k).to_pylist(), dtype=float) for k in (
-        'est_radial_clearance_std_m', 'est_overlap_std_m', 'est_valve_degradation_std')],
-        axis=1)
+        'est_radial_clearance_std_m', 'est_overlap_std_m', 'est_valve_degradation_std',
+        'est_leakage_coeff_m3_s_pa_std')], axis=1)
     raw_std = std / np.asarray(factors_used)
     ratio = np.abs(est - truth)[keep] / np.maximum(raw_std[keep], 1e-300)
     factors = np.maximum(1.0, np.quantile(ratio, 0.95, axis=0) / 2.0)

@@ -1,0 +1,161 @@
+"""The valve test under drift: the settled test read by the valve fit at the measured
+conditions, beside the reference's 10 ms transient read by the diagnostic network, on sets
+drawn from streams used neither to build nor to calibrate either (``config/test_bench.yaml``
+states the envelopes).  Every case runs through the sweep engine (``eha_ros.sweep``).
+
+Sets
+    ``clean``: random valves (wear uniform over its ranges), nominal conditions (the bench's
+    sensor errors from each seed).  ``noise_1pct``: the same valves, 1 % relative noise on
+    every pressure.  ``drift``: random valves with supply pressure +-5 %, return pressure,
+    fluid temperature over its service range, bulk modulus -20/+10 %, Khsv up to 0.2 and jack
+    leakage up to 10x drawn uniformly.  ``nominal_drift``: the nominal valve with that drift
+    and different seeds (false alarms).  ``beyond``: drifted valves with one condition beyond
+    the envelope (``beyond`` in ``config/test_bench.yaml``).
+
+Per set and procedure: mean and max error in % of each range, 2-sigma coverage, items that
+read OK with a 2-sigma interval excluding the truth, mismatch flags (the reference's: its
+residual beyond ``residual_error_pa``), and the confusion table of the true level against the
+reported one.
+
+    python bench/health_valve.py [--workers 2] [--quick]
+"""
+
+import argparse
+import json
+import os
+import time
+
+import numpy as np
+
+from eha_ros.graph import LEVEL_NAMES
+from eha_ros.health.thresholds import HealthEstimate, HealthThresholds, classify
+from eha_ros.physics.maps import WEAR_RANGES
+from eha_ros.training.valve_fit import drifted_cases, run_cases
+
+#: Streams of the sets (the calibration uses 31).
+STREAMS = {'clean': 201, 'drift': 202, 'nominal_drift': 203, 'beyond': 204}
+SPANS = np.array([np.diff(WEAR_RANGES['radial_clearance_m'])[0],
+                  np.diff(WEAR_RANGES['overlap_m'])[0]])
+CANNOT = 3
+
+
+def _level(c, o, lim) -> int:
+    if c >= lim.clearance_error_m or o <= lim.overlap_error_m:
+        return 2
+    if c >= lim.clearance_warn_m or o <= lim.overlap_warn_m:
+        return 1
+    return 0
+
+
+def figures(table, cases, procedure, lim) -> dict:
+    col = {k: np.array(table.column(k).to_pylist()) for k in (
+        'status', 'est_radial_clearance_m', 'est_radial_clearance_std_m', 'est_overlap_m',
+        'est_overlap_std_m', 'pressure_residual_pa', 'mismatch')}
+    ok = col['status'] == 'ok'
+    from eha_ros.physics import default_params
+    p = default_params()
+    truth = np.array([[c.get('radial_clearance_m', p.radial_clearance_m),
+                       c.get('overlap_supply_m', p.overlap_supply_m)] for c in cases])
+    est = np.stack([col['est_radial_clearance_m'], col['est_overlap_m']], axis=1).astype(float)
+    std = np.stack([col['est_radial_clearance_std_m'], col['est_overlap_std_m']],
+                   axis=1).astype(float)
+    if procedure == 'settled':
+        mismatch = col['mismatch'].astype(bool)
+    else:   # the reference's only test of fit: its residual against the limit
+        mismatch = col['pressure_residual_pa'].astype(float) > lim.residual_error_pa
+    err = np.abs(est - truth) / SPANS * 100.0
+    inside = np.abs(est - truth) <= 2.0 * std
+    levels, true_levels = [], []
+    for k in range(len(cases)):
+        true_levels.append(_level(*truth[k], lim))
+        if not ok[k]:
+            levels.append(2)
+            continue
+        if mismatch[k]:
+            levels.append(CANNOT)
+            continue
+        h = HealthEstimate(est[k, 0], std[k, 0], est[k, 1], std[k, 1],
+                           float(col['pressure_residual_pa'][k]), 0, procedure)
+        levels.append(classify(h, lim)[0])
+    levels, true_levels = np.array(levels), np.array(true_levels)
+    confusion = {}
+    for t in range(3):
+        row = {LEVEL_NAMES[r]: int(np.sum((true_levels == t) & (levels == r)))
+               for r in range(4)}
+        if sum(row.values()):
+            confusion[f'true_{LEVEL_NAMES[t]}'] = row
+    assessed = ok & ~mismatch
+    out = {'cases': len(cases), 'errors': int((~ok).sum()),
+           'mismatch_flagged': int(mismatch[ok].sum()),
+           'mismatch_rate': round(float(mismatch[ok].mean()), 3) if ok.any() else None,
+           'confusion': confusion,
+           'alarms': int(np.sum(np.isin(levels, (1, 2, CANNOT)))),
+           'ok_excluding_truth': int(np.sum((levels == 0)[:, None] & ~inside & ok[:, None]))}
+    for j, name in enumerate(('clearance', 'overlap')):
+        for tag, m in (('all', ok), ('assessed', assessed)):
+            if m.any():
+                out[f'{name}_{tag}'] = {
+                    'mean_error_pct': round(float(err[m, j].mean()), 3),
+                    'max_error_pct': round(float(err[m, j].max()), 3),
+                    'within_2sigma': round(float(inside[m, j].mean()), 3), 'n': int(m.sum())}
+    return out
+
+
+def sets(quick: bool) -> dict:
+    n = 12 if quick else 40
+    clean = drifted_cases(n, STREAMS['clean'], drift=False)
+    out = {'clean': (clean, 0.0), 'noise_1pct': (clean, 0.01),
+           'drift': (drifted_cases(40 if quick else 200, STREAMS['drift']), 0.0),
+           'nominal_drift': (drifted_cases(8 if quick else 24, STREAMS['nominal_drift'],
+                                           wear=False), 0.0)}
+    from eha_ros.physics import default_params
+    from eha_ros.physics.bench import load_bench
+    p = default_params()
+    b = load_bench(params=p)
+    beyond, k = [], 0
+    per = 3 if quick else 10
+    for name, entry in b.beyond.items():
+        values = ([f * getattr(p, name) for f in entry['factors']] if 'factors' in entry
+                  else list(entry['values']))
+        for v in values:
+            beyond += [dict(c, _beyond=f'{name}={v:.4g}') for c in drifted_cases(
+                per, STREAMS['beyond'] + 1000 * k, overrides={name: v})]
+            k += 1
+    out['beyond'] = (beyond, 0.0)
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument('--workers', type=int, default=2)
+    ap.add_argument('--quick', action='store_true', help='fewer cases (a smoke run)')
+    args = ap.parse_args()
+    t0 = time.perf_counter()
+    lim = HealthThresholds.load()
+    out = {'load_before': [round(x, 2) for x in os.getloadavg()]}
+    for name, (cases, noise) in sets(args.quick).items():
+        clean = [{k: v for k, v in c.items() if k != '_beyond'} for c in cases]
+        out[name] = {}
+        for procedure in ('settled', 'reference'):
+            t = time.perf_counter()
+            table = run_cases(clean, procedure, noise, workers=args.workers)
+            out[name][procedure] = figures(table, clean, procedure, lim)
+            out[name][procedure]['wall_s'] = round(time.perf_counter() - t, 1)
+            if name == 'beyond':
+                mis = np.array(table.column('mismatch').to_pylist(), dtype=bool)
+                if procedure == 'reference':
+                    mis = np.array(table.column('pressure_residual_pa').to_pylist(),
+                                   dtype=float) > lim.residual_error_pa
+                kinds = {}
+                for c, m in zip(cases, mis):
+                    kinds.setdefault(c['_beyond'], []).append(bool(m))
+                out[name][procedure]['hit_rate_by_kind'] = {
+                    k: round(float(np.mean(v)), 3) for k, v in kinds.items()}
+        print(json.dumps({name: out[name]}), flush=True)
+    out['load_after'] = [round(x, 2) for x in os.getloadavg()]
+    out['wall_s'] = round(time.perf_counter() - t0, 1)
+    print(json.dumps(out))
+
+
+if __name__ == '__main__':
+    main()
