@@ -33,6 +33,7 @@ report does not estimate keep the last estimate made (or none).
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections import deque
 
 import numpy as np
@@ -220,6 +221,8 @@ class MonitorCore:
         self.valve_fit = valve_fit
         self.readings = []            # the bench's readings of the conditions in a test
         self.procedure = 'reference'
+        self._point, self._before = None, math.nan
+        self._trace = deque(maxlen=4096)   # (sim time, P12) of the point held
         self.samples = deque()
         self.next_ns = None
         self.mode = None              # None (in service), 'valve-test', 'preflight'
@@ -276,20 +279,35 @@ class MonitorCore:
             self.procedure = 'settled' if int(getattr(s, 'valve_test_procedure', 0)) else \
                 'reference'
         self._read_conditions(s)
+        if self.procedure == 'settled':   # the settle check's sample, SETTLE_CHECK_S early
+            from eha_ros.health.valve_fit import SETTLE_CHECK_S
+            key = (float(s.load_flow_m3_s), int(s.valve_test_point))
+            if key != self._point:
+                self._point, self._before = key, math.nan
+                self._trace.clear()
+            self._trace.append((float(s.sim_time_s), float(s.p12_pa)))
+            if s.valve_test_point_end:
+                target = float(s.sim_time_s) - SETTLE_CHECK_S
+                self._before = next((p for t, p in self._trace if abs(t - target) < 1e-7),
+                                    math.nan)
         if not s.valve_test_point_end:
             return []
         n_points = (valve_test_schedule('settled')['n_points'] if self.procedure == 'settled'
                     else MAP_POINTS)
         q = float(s.load_flow_m3_s)
         curve = self.curves.setdefault(q, {})
-        curve[int(s.valve_test_point)] = (float(s.spool_position_m), float(s.p12_pa))
+        curve[int(s.valve_test_point)] = (float(s.spool_position_m), float(s.p12_pa),
+                                          self._before if self.procedure == 'settled'
+                                          else math.nan)
         if int(s.valve_test_point) != n_points - 1:
             return []
         if len(curve) < n_points:
             return [Job(self, 'valve-test-incomplete', t_ns, (q, len(curve), n_points))]
         pts = [curve[k] for k in sorted(curve)]
-        self.curves_done.append((q, np.array([x for x, _ in pts]),
-                                 np.array([p for _, p in pts])))
+        done = (q, np.array([x for x, _, _ in pts]), np.array([p for _, p, _ in pts]))
+        if self.procedure == 'settled':
+            done += (np.array([b for _, _, b in pts]),)
+        self.curves_done.append(done)
         return [Job(self, 'valve-test', t_ns, (self.procedure, list(self.curves_done),
                                                self._conditions()))]
 

@@ -16,7 +16,8 @@ Fit
     points whose measured |P12| lies below 95 % of the measured supply-return difference (a
     blocked chamber at a flow is beyond what a bench's relief lets through), weights
     ``1 / (0.01 |P12| + 20 kPa)``: in units of a 1 % measurement noise.  Starts: the best
-    of a 4 x 4 grid of clearance and overlap, refined from the three best.
+    of a 4 x 4 grid of clearance and overlap, refined from the two best.  Points that had not
+    settled (their P12 still moving over the last tenth of the hold) are left out.
 
 Uncertainty
     The fit's covariance (scaled by its own residual where that exceeds the weights' noise),
@@ -60,11 +61,18 @@ FIT_NAMES = ('radial_clearance_m', 'overlap_supply_m', 'valve_degradation',
 KHSV_RANGE = (0.0, 0.6)
 _NOISE_REL = 0.01
 _NOISE_FLOOR_PA = 2e4
-_BAND = 0.95
-# fit variables: clearance [um], overlap [um], Khsv, jack leakage [1e-13 m^3/(s Pa)]
-_LO = np.array([0.3, -5.0, KHSV_RANGE[0], 0.0])
-_HI = np.array([10.0, 10.0, KHSV_RANGE[1], 100.0])
-_SCALE = np.array([1.0, 1.0, 0.05, 1.0])
+_BAND = 1.05
+#: A point counts as settled when its P12 moved by at most this fraction of itself plus
+#: ``SETTLED_ABS_PA`` over the last tenth of its hold (``SETTLE_CHECK_S`` before the end).
+SETTLED_REL = 0.002
+SETTLED_ABS_PA = 2e3
+SETTLE_CHECK_S = 0.01
+_SUPPLY_UNIT_PA = 1e4
+# fit variables: clearance [um], overlap [um], Khsv, jack leakage [1e-13 m^3/(s Pa)],
+# supply pressure less its reading [10 kPa]
+_LO = np.array([0.3, -5.0, KHSV_RANGE[0], 0.0, -50.0])
+_HI = np.array([10.0, 10.0, KHSV_RANGE[1], 100.0, 50.0])
+_SCALE = np.array([1.0, 1.0, 0.05, 1.0, 1.0])
 _UNITS = np.array([1e-6, 1e-6, 1.0, 1e-13])
 _START_C = (1.2, 2.5, 4.0, 5.5)
 _START_O = (-1.5, 1.0, 3.5, 6.0)
@@ -104,60 +112,93 @@ def _params(base: PlantParams, theta) -> PlantParams:
 
 
 def _points(curves, cond: Conditions):
-    xs = np.concatenate([np.asarray(x, dtype=float) for _, x, _ in curves])
-    q = np.concatenate([np.full(np.size(x), float(qq)) for qq, x, _ in curves])
-    p12 = np.concatenate([np.asarray(p, dtype=float) for _, _, p in curves])
+    """The fitted points: inside the bench's pressure range and, where the curves carry the
+    pressure a tenth of the hold before its end, settled: moved by at most ``SETTLED_REL``
+    of itself plus ``SETTLED_ABS_PA``, plus three times the measurement noise the pairs
+    show (their median relative difference over 0.674 x sqrt 2)."""
+    checked = [(np.asarray(c[2], dtype=float), np.asarray(c[3], dtype=float))
+               for c in curves if len(c) > 3 and c[3] is not None]
+    noise_rel = 0.0
+    if checked:
+        end = np.concatenate([e for e, _ in checked])
+        before = np.concatenate([b for _, b in checked])
+        ok = np.isfinite(before) & (np.abs(end) > 10 * SETTLED_ABS_PA)
+        if ok.any():
+            rel = np.abs(end[ok] - before[ok]) / np.abs(end[ok])
+            noise_rel = float(np.median(rel)) / (0.674 * np.sqrt(2.0))
+    xs, q, p12, unsettled = [], [], [], 0
+    for c in curves:
+        x, p = np.asarray(c[1], dtype=float), np.asarray(c[2], dtype=float)
+        keep = np.ones(p.size, dtype=bool)
+        if len(c) > 3 and c[3] is not None:
+            before = np.asarray(c[3], dtype=float)
+            tol = (SETTLED_REL + 3.0 * np.sqrt(2.0) * noise_rel) * np.abs(p) + SETTLED_ABS_PA
+            keep = np.isnan(before) | (np.abs(p - before) <= tol)
+            unsettled += int(np.sum(~keep))
+        xs.append(x[keep])
+        p12.append(p[keep])
+        q.append(np.full(int(keep.sum()), float(c[0])))
+    xs, q, p12 = (np.concatenate(a) for a in (xs, q, p12))
     if not (np.all(np.isfinite(p12)) and np.all(np.isfinite(xs))):
         raise ParameterError('valve test: the curves must be finite')
-    keep = np.abs(p12) < _BAND * (cond.supply_pressure_pa - cond.return_pressure_pa)
-    return xs[keep], q[keep], p12[keep], int(p12.size)
+    n_all = sum(np.size(c[2]) for c in curves)
+    keep = np.abs(p12) <= _BAND * (cond.supply_pressure_pa - cond.return_pressure_pa)
+    return xs[keep], q[keep], p12[keep], n_all, unsettled
 
 
-def fit_curves(curves, cond: Conditions, base: PlantParams, bench=None) -> dict:
+def fit_curves(curves, cond: Conditions, base: PlantParams, bench=None,
+               supply_std_pa: float | None = None) -> dict:
     """The weighted least-squares fit (module docstring): ``theta`` (clearance [um],
-    overlap [um], Khsv, jack leakage [1e-13 m^3/(s Pa)]), its covariance, ``chi``, the RMS
-    residual [Pa], the points used and
-    the sensitivities of ``theta`` to each measured condition."""
+    overlap [um], Khsv, jack leakage [1e-13 m^3/(s Pa)], supply pressure less its reading
+    [10 kPa]), its covariance, ``chi``, the RMS residual [Pa], the points used and the
+    sensitivities of ``theta`` to the other measured conditions.  ``supply_std_pa``: the
+    prior deviation of the supply pressure about ``cond``'s (default: its sensor's)."""
     from scipy.optimize import least_squares
     b = bench or load_bench(params=base)
-    xs, q, p12, n_all = _points(curves, cond)
+    xs, q, p12, n_all, unsettled = _points(curves, cond)
     if xs.size < 10:
-        raise ParameterError(f'valve test: {xs.size} of {n_all} points lie inside the '
+        raise ParameterError(f'valve test: {xs.size} of {n_all} points settled inside the '
                              'measured supply-return range: too few to fit')
     w = 1.0 / (_NOISE_REL * np.abs(p12) + _NOISE_FLOOR_PA)
-    at = with_conditions(base, cond, b)
+    if supply_std_pa is None:   # the transducer's calibration error, uniform
+        supply_std_pa = b.sensors['supply_pressure_pa'].bias / np.sqrt(3.0)
+    s_ps = supply_std_pa / _SUPPLY_UNIT_PA
 
-    def resid(theta, p=at):
-        return (steady_map(xs, q, params=_params(p, theta))['p12_pa'] - p12) * w
+    def resid(theta, c=cond):
+        at = with_conditions(base, dataclasses.replace(
+            c, supply_pressure_pa=c.supply_pressure_pa + theta[4] * _SUPPLY_UNIT_PA), b)
+        r = (steady_map(xs, q, params=_params(at, theta[:4]))['p12_pa'] - p12) * w
+        return np.append(r, theta[4] / s_ps)
 
-    starts = [np.array([c, o, 0.05, 2.0]) for c in _START_C for o in _START_O]
+    starts = [np.array([c, o, 0.05, 2.0, 0.0]) for c in _START_C for o in _START_O]
     costs = [float(np.sum(resid(s) ** 2)) for s in starts]
     best = None
-    for i in np.argsort(costs)[:3]:
+    for i in np.argsort(costs)[:2]:
         r = least_squares(resid, starts[i], bounds=(_LO, _HI), x_scale=_SCALE,
                           diff_step=1e-4, xtol=1e-10, ftol=1e-10)
         if best is None or r.cost < best.cost:
             best = r
     theta = best.x
-    dof = max(xs.size - theta.size, 1)
+    dof = max(xs.size + 1 - theta.size, 1)
     chi = float(np.sqrt(2.0 * best.cost / dof))
     jac = best.jac
     jtj_inv = np.linalg.pinv(jac.T @ jac)
     cov = jtj_inv * max(chi, 1.0) ** 2
-    # d theta / d condition, by the fit's linearisation: -(J'J)^-1 J' dr/dc
+    # d theta / d condition, by the fit's linearisation: -(J'J)^-1 J' dr/dc (the supply's
+    # error is a parameter of the fit, with its sensor's prior)
     sens = {}
     r0 = resid(theta)
-    for name, h in (('supply_pressure_pa', 2e4), ('return_pressure_pa', 2e3),
-                    ('fluid_temperature_k', 0.2)):
+    for name, h in (('return_pressure_pa', 2e3), ('fluid_temperature_k', 0.2)):
         c2 = dataclasses.replace(cond, **{name: getattr(cond, name) + h})
-        dr = (resid(theta, with_conditions(base, c2, b)) - r0) / h
+        dr = (resid(theta, c2) - r0) / h
         sens[name] = -(jtj_inv @ (jac.T @ dr))
     # Khsv = 0 (clean edges) and no leakage are physical bounds, not failures of the fit
     at_bound = bool(np.any(np.isclose(theta[:2], _LO[:2], rtol=0, atol=1e-6))
-                    or np.any(np.isclose(theta, _HI, rtol=0, atol=1e-6)))
+                    or np.any(np.isclose(theta[:4], _HI[:4], rtol=0, atol=1e-6)))
     return {'theta': theta, 'cov': cov, 'chi': chi, 'at_bound': at_bound,
-            'residual_pa': float(np.sqrt(np.mean((r0 / w) ** 2))), 'n_used': int(xs.size),
-            'n_points': n_all, 'sensitivity': sens}
+            'residual_pa': float(np.sqrt(np.mean((r0[:-1] / w) ** 2))),
+            'n_used': int(xs.size), 'n_points': n_all, 'unsettled': unsettled,
+            'supply_offset_pa': float(theta[4] * _SUPPLY_UNIT_PA), 'sensitivity': sens}
 
 
 class ValveFitEstimator:
@@ -186,10 +227,13 @@ class ValveFitEstimator:
         return np.array([self.bench.sensors[k].bias / np.sqrt(3.0) for k in CONDITIONS])
 
     def estimate(self, curves, conditions: Conditions | None) -> HealthEstimate:
-        """``curves``: ``(q_m3_s, xs_m, p12_pa)`` per flow; ``conditions``: the measured
-        test conditions (``None``: nominal assumed, said so, deviations widened)."""
-        curves = [(float(q), np.asarray(x, dtype=float), np.asarray(p, dtype=float))
-                  for q, x, p in curves]
+        """``curves``: ``(q_m3_s, xs_m, p12_pa[, p12_before_pa])`` per flow, with P12 at the
+        end of each hold and, where known, ``SETTLE_CHECK_S`` before it (unsettled points
+        are left out); ``conditions``: the measured test conditions (``None``: nominal
+        assumed, said so, deviations widened)."""
+        curves = [(float(c[0]), np.asarray(c[1], dtype=float), np.asarray(c[2], dtype=float),
+                   None if len(c) < 4 or c[3] is None else np.asarray(c[3], dtype=float))
+                  for c in curves]
         if not curves:
             raise ParameterError('no complete valve-test curve')
         notes = []
@@ -200,16 +244,20 @@ class ValveFitEstimator:
                                         self.params.fluid_kinematic_viscosity_m2_s), True)
         if conditions.assumed:
             notes.append('test conditions not measured: nominal assumed')
-        f = fit_curves(curves, conditions, self.params, self.bench)
-        theta, cov = f['theta'], f['cov']
+        lo, hi = self.bench.service['supply_pressure_pa']
+        f = fit_curves(curves, conditions, self.params, self.bench,
+                       (hi - lo) / np.sqrt(12.0) if conditions.assumed else None)
+        theta, cov = f['theta'][:4], f['cov'][:4, :4]
+        f['sensitivity'] = {k: v[:4] for k, v in f['sensitivity'].items()}
         scale = _UNITS
-        var = np.diag(cov).copy()
+        var = np.abs(np.diag(cov))
         cstd = self.condition_std()
         if conditions.assumed:   # the whole service range is possible
             cstd = np.array([(hi - lo) / np.sqrt(12.0)
                              for lo, hi in (self.bench.service[k] for k in CONDITIONS)])
         for j, name in enumerate(CONDITIONS):
-            var += (f['sensitivity'][name] * cstd[j]) ** 2
+            if name in f['sensitivity']:
+                var += (f['sensitivity'][name] * cstd[j]) ** 2
         cal = self.calibration
         factors = cal.factors if cal is not None else np.ones(len(FIT_NAMES))
         std = np.sqrt(var) * factors * scale

@@ -462,7 +462,7 @@ class ValveTestProcedure(Procedure):
         return self.schedule()['flows_m3_s']
 
     def run_point(self, point) -> list:
-        from eha_ros.health.valve_fit import ValveFitEstimator
+        from eha_ros.health.valve_fit import SETTLE_CHECK_S, ValveFitEstimator
         from eha_ros.health.valve_test import ValveTestEstimator
         from eha_ros.physics import default_params
         from eha_ros.physics.bench import load_bench, mean_conditions, measure_conditions
@@ -476,13 +476,18 @@ class ValveTestProcedure(Procedure):
             grid = spool_grid(sch['n_points'], p.spool_stroke_m)
             rng = np.random.default_rng([int(point.seed), 0x9E55])
             curves = []
+            settled = self.spec.valve_test_procedure == 'settled'
             for q in sch['flows_m3_s']:
-                p12 = np.asarray(transient_map(grid, q, params=p, t_end_s=sch['hold_s'],
-                                               dt_s=c.dt_s)['p12_pa'], dtype=float)
+                # P12 at the end of the hold and, for the settled test, SETTLE_CHECK_S before
+                ends = (sch['hold_s'] - SETTLE_CHECK_S, sch['hold_s']) if settled else (
+                    sch['hold_s'],)
+                p12 = [np.asarray(transient_map(grid, q, params=p, t_end_s=t,
+                                                dt_s=c.dt_s)['p12_pa'], dtype=float)
+                       for t in ends]
                 if self.spec.pressure_noise:
-                    p12 = p12 * (1.0 + self.spec.pressure_noise
-                                 * rng.standard_normal(p12.shape))
-                curves.append((q, grid, p12))
+                    p12 = [v * (1.0 + self.spec.pressure_noise * rng.standard_normal(v.shape))
+                           for v in p12]
+                curves.append((q, grid, p12[-1], p12[0]) if settled else (q, grid, p12[0]))
             nominal = replace(default_params(), noise_std_a=0.0)
             # as the plant reports them at 1 kHz: one reading at start, one per test tick
             n_ticks = int(round(sch['hold_s'] * 1e3)) * sch['n_points'] * len(curves)
