@@ -21,16 +21,22 @@ Prints one JSON object:
     controller, the monitor's last 1 s window): how often both wear parameters lie within
     2 sigma, false alarms on the nominal valve, detections on the worn ones, and how many
     estimates were labelled separable while their error exceeded 2 sigma.
+``valve_test_drift`` (``bench/health_valve.py``; ``--no-drift`` skips)
+    The settled valve test beside the reference's under drift: clean, 1 % noise, drifted
+    within the envelope, nominal valves with drift, beyond the envelope.
+``preflight_drift`` (``bench/health_preflight.py``, where present; ``--no-drift`` skips)
+    The pre-flight network under nuisance drift.
 ``realtime`` (``--realtime-s S``, default 20; 0 skips)
     The graph in realtime at 1 kHz, every node its own process, health monitor on: in-service
     estimates published against those scheduled (one every ``update_period_s`` of received
     state time).
 
-    python bench/health.py [--realtime-s 20] [--quick]
+    python bench/health.py [--realtime-s 20] [--quick] [--no-drift] [--workers 2]
 """
 
 import argparse
 import json
+import os
 import time
 
 import numpy as np
@@ -229,16 +235,28 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument('--realtime-s', type=float, default=20.0)
     ap.add_argument('--quick', action='store_true', help='fewer cases (a smoke run)')
+    ap.add_argument('--no-drift', action='store_true', help='skip the drifted sets')
+    ap.add_argument('--workers', type=int, default=2, help='sweep workers of the drifted sets')
     args = ap.parse_args()
     p0 = default_params()
     lim = HealthThresholds.load()
     t0 = time.perf_counter()
-    out = {'benchmark': 'health'}
+    out = {'benchmark': 'health', 'load_before': [round(x, 2) for x in os.getloadavg()]}
+    if not args.no_drift:
+        from health_valve import valve_drift
+        out['valve_test_drift'] = valve_drift(args.workers, args.quick)
+        try:
+            from health_preflight import preflight_drift
+        except ImportError:
+            out['preflight_drift'] = 'bench/health_preflight.py not present'
+        else:
+            out['preflight_drift'] = preflight_drift(workers=args.workers)
     out['valve_test'] = bench_valve_test(p0, args.quick)
     out['preflight'] = bench_preflight(p0, lim, args.quick)
     out['in_service'] = bench_in_service(p0, lim, args.quick)
     if args.realtime_s > 0:
         out['realtime'] = bench_realtime(args.realtime_s)
+    out['load_after'] = [round(x, 2) for x in os.getloadavg()]
     out['wall_s'] = round(time.perf_counter() - t0, 1)
     print(json.dumps(out))
 

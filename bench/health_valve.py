@@ -125,20 +125,16 @@ def sets(quick: bool) -> dict:
     return out
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument('--workers', type=int, default=2)
-    ap.add_argument('--quick', action='store_true', help='fewer cases (a smoke run)')
-    args = ap.parse_args()
-    t0 = time.perf_counter()
+def valve_drift(workers: int = 2, quick: bool = False, progress=None) -> dict:
+    """The figures of every set (module docstring), both procedures."""
     lim = HealthThresholds.load()
-    out = {'load_before': [round(x, 2) for x in os.getloadavg()]}
-    for name, (cases, noise) in sets(args.quick).items():
+    out = {}
+    for name, (cases, noise) in sets(quick).items():
         clean = [{k: v for k, v in c.items() if k != '_beyond'} for c in cases]
         out[name] = {}
         for procedure in ('settled', 'reference'):
             t = time.perf_counter()
-            table = run_cases(clean, procedure, noise, workers=args.workers)
+            table = run_cases(clean, procedure, noise, workers=workers)
             out[name][procedure] = figures(table, clean, procedure, lim)
             out[name][procedure]['wall_s'] = round(time.perf_counter() - t, 1)
             if name == 'beyond':
@@ -151,7 +147,20 @@ def main():
                     kinds.setdefault(c['_beyond'], []).append(bool(m))
                 out[name][procedure]['hit_rate_by_kind'] = {
                     k: round(float(np.mean(v)), 3) for k, v in kinds.items()}
-        print(json.dumps({name: out[name]}), flush=True)
+        if progress:
+            progress(json.dumps({name: out[name]}))
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument('--workers', type=int, default=2)
+    ap.add_argument('--quick', action='store_true', help='fewer cases (a smoke run)')
+    args = ap.parse_args()
+    t0 = time.perf_counter()
+    out = {'load_before': [round(x, 2) for x in os.getloadavg()]}
+    out.update(valve_drift(args.workers, args.quick,
+                           progress=lambda line: print(line, flush=True)))
     out['load_after'] = [round(x, 2) for x in os.getloadavg()]
     out['wall_s'] = round(time.perf_counter() - t0, 1)
     print(json.dumps(out))

@@ -163,3 +163,49 @@ def test_deviations_cover_the_truth_on_a_drifted_set(est):
 def test_conditions_dataclass_round_trip():
     c = Conditions(2.0e7, 6e5, 313.15)
     assert dataclasses.replace(c, assumed=True).as_dict()['assumed'] is True
+
+
+def test_graph_maintenance_test_gives_the_benchs_estimate_and_lists_its_conditions(
+        eha_graph, tmp_path):
+    """The settled maintenance test through the graph (lockstep, health monitor, recorder):
+    the live monitor's valve-test estimate equals the sweep procedure's - the benchmark's -
+    for the same valve and seed bit for bit (same transients, same sensor readings), and
+    eha-diagnose --json replays it and lists the measured conditions each test used."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from eha_ros.physics import params_to_dict
+    from eha_ros.sweep import parse_spec, read_dataset, run_sweep
+    wear = {'radial_clearance_m': 3.3e-6, 'overlap_supply_m': 1.7e-6,
+            'overlap_return_m': 1.7e-6, 'valve_degradation': 0.05,
+            'leakage_coeff_m3_s_pa': 3e-13}
+    path = tmp_path / 'maintenance.mcap'
+    r = eha_graph(processes=False, scenario='maintenance_test', plant=wear, health=True,
+                  record=str(path))
+    live = [m for m in r.health if m.method == 'settled-valve-fit']
+    assert len(live) == 4   # one estimate per completed curve
+    spec = parse_spec({'procedure': 'valve_test', 'valve_test_procedure': 'settled',
+                       'cases': [dict(wear, seed=0)]}, source='test',
+                      base=params_to_dict(default_params()))
+    run_sweep(spec, tmp_path / 'sweep', in_process=True)
+    row = read_dataset(tmp_path / 'sweep').to_pylist()[0]
+    assert row['status'] == 'ok', row['error']
+    assert live[-1].radial_clearance_m == row['est_radial_clearance_m']
+    assert live[-1].overlap_m == row['est_overlap_m']
+    assert live[-1].radial_clearance_std_m == row['est_radial_clearance_std_m']
+    out = subprocess.run([str(Path(sys.executable).parent / 'eha-diagnose'), str(path),
+                          '--json'], capture_output=True, text=True, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    d = json.loads(out.stdout)
+    assert d['live_agrees'] is True
+    vt = d['conditions_by_test']['valve-test']
+    assert not vt['assumed']
+    assert vt['supply_pressure_pa'] == row['measured_supply_pressure_pa']
+    assert abs(vt['supply_pressure_pa'] - P.supply_pressure_pa) <= 6e4   # the sensor's bias
+    assert abs(e_k := d['estimates']['valve_degradation']['value']) >= 0 and abs(
+        e_k - 0.05) <= 2 * d['estimates']['valve_degradation']['std']
+    assert set(d['conditions_by_test']) == {'valve-test', 'preflight'}
+    e = d['estimates']['radial_clearance_m']
+    assert e['value'] == row['est_radial_clearance_m'] and e['method'] == 'settled-valve-fit'
