@@ -130,13 +130,15 @@ def _wear_items(est: HealthEstimate, level: int, text: str, limits: HealthThresh
                for n, v, s in (('radial_clearance_m', est.radial_clearance_m,
                                 est.radial_clearance_std_m),
                                ('overlap_supply_m', est.overlap_m, est.overlap_std_m))}
-        for n, (v, s) in est.extra.items():
-            if n in ITEMS:
+        for n in ITEMS:
+            if n in est.extra:
+                v, s = est.extra[n]
                 out[n] = Item(n, float(v), float(s), CANNOT_ASSESS, why, est.method, stamp_ns)
         return out
     out = {}
-    for n, (v, s) in est.extra.items():
-        if n in ITEMS:
+    for n in ITEMS:
+        if n in est.extra:
+            v, s = est.extra[n]
             lv, why = classify_fault(n, v, s, limits)
             out[n] = Item(n, float(v), float(s), lv, why, est.method, stamp_ns)
     for name, v, s, warn, err, sign in (

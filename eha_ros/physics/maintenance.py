@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from .maps import spool_grid, transient_map
+from .maps import spool_grid, transient_trace
 from .params import ParameterError, PlantParams
 
 __all__ = ['MAP_POINTS', 'MAP_HOLD_S', 'SETTLED_POINTS', 'SETTLED_HOLD_S', 'SETTLED_FLOWS_M3_S',
@@ -129,8 +129,13 @@ class ValveTest:
         self.tick_ns = int(tick_ns)
         self.dt_s = float(dt_s)
         self.n_points = int(n_points)
+        steps = self.tick_ns * 1e-9 / self.dt_s
+        if abs(steps - round(steps)) > 1e-9 * steps:
+            raise ParameterError(f'valve test: the tick of {tick_ns} ns must be a whole number '
+                                 f'of steps of {dt_s:g} s')
         self.ticks_per_point = hold_ns // self.tick_ns
         self.n_ticks = flows.size * self.n_points * self.ticks_per_point
+        self._trace_key, self._trace = None, None
 
     @property
     def duration_s(self) -> float:
@@ -153,10 +158,15 @@ class ValveTest:
         curve, point = divmod(point_global, self.n_points)
         xs = float(self.grid(params)[point])
         q = float(self.flows_m3_s[curve])
-        t_end = (m + 1) * self.tick_ns * 1e-9
-        r = transient_map(xs, q, params=params, t_end_s=t_end, dt_s=self.dt_s)
-        p1 = float(r['p1_pa'])
-        p2 = float(r['p2_pa'])
+        # the point's whole transient once, at its first tick or when the parameters change
+        key = (point_global, params)
+        if self._trace_key != key:
+            steps = int(round(self.tick_ns * 1e-9 / self.dt_s))
+            self._trace = transient_trace(xs, q, self.ticks_per_point, steps, params,
+                                          self.dt_s)
+            self._trace_key = key
+        p1 = float(self._trace[0][m])
+        p2 = float(self._trace[1][m])
         if not (math.isfinite(p1) and math.isfinite(p2)):  # transient_map raises first
             raise FloatingPointError('valve test transient is not finite')
         return ValveTestSample(xs, q, p1, p2, point, curve, m == self.ticks_per_point - 1)

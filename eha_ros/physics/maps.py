@@ -29,7 +29,7 @@ from .valve import (edge_constants, fluid_constants, net_flow, steady_pressures,
                     valve_coefficients)
 
 __all__ = ['WEAR_RANGES', 'FLUID_PARAMETERS', 'FLOW_MAX_M3_S', 'fluid_hash', 'spool_grid',
-           'transient_map', 'steady_map', 'MapResult', 'settling_mask']
+           'transient_map', 'transient_trace', 'steady_map', 'MapResult', 'settling_mask']
 
 _BLOCK = 64
 
@@ -72,9 +72,12 @@ def spool_grid(n: int = 133, stroke_m: float | None = None, density: float = 4.0
 
 
 @njit(cache=True, parallel=True)
-def _transient_kernel(xs, q, lap_s, lap_r, clr, consts, n_steps, dt, out_p1, out_p2):
-    """Integrate every point from zero pressure for ``n_steps`` steps, with the valve's own
-    edge equations (:mod:`.valve`)."""
+def _transient_kernel(xs, q, lap_s, lap_r, clr, consts, n_steps, dt, out_p1, out_p2, raw_p1,
+                      raw_p2):
+    """Integrate every point from the unclipped pressures ``raw_p1``/``raw_p2`` (zero: the
+    map transient) for ``n_steps`` steps, with the valve's own edge equations
+    (:mod:`.valve`); ``raw_*`` hold the unclipped pressures after, ``out_*`` the clipped
+    ones.  Integrating in chunks from the raw state repeats the same steps bit for bit."""
     ps, pr, pvap, kvol, clk, w, cd, mu, rho, ecc, lc, reynolds = consts
     n = xs.size
     n_blocks = (n + _BLOCK - 1) // _BLOCK
@@ -88,6 +91,8 @@ def _transient_kernel(xs, q, lap_s, lap_r, clr, consts, n_steps, dt, out_p1, out
         p2t = np.zeros(_BLOCK)
         for j in range(m):
             i = i0 + j
+            p1t[j] = raw_p1[i]
+            p2t[j] = raw_p2[i]
             vc = edge_constants(clr[i], lap_s[i], lap_r[i], w, cd, mu, rho, ecc, lc,
                                 reynolds != 0.0)
             e = valve_coefficients(xs[i], vc)
@@ -106,6 +111,8 @@ def _transient_kernel(xs, q, lap_s, lap_r, clr, consts, n_steps, dt, out_p1, out
                 p1t[j] += (q1l - qm) * kvol * dt
                 p2t[j] += (qm - q2l) * kvol * dt
         for j in range(m):
+            raw_p1[i0 + j] = p1t[j]
+            raw_p2[i0 + j] = p2t[j]
             out_p1[i0 + j] = max(pvap, p1t[j])
             out_p2[i0 + j] = max(pvap, p2t[j])
 
@@ -148,7 +155,8 @@ def transient_map(xs_m, q_m3_s, overlap_m=None, clearance_m=None, params=None,
         raise ValueError('t_end_s must cover at least one step of dt_s')
     p1 = np.empty(xs.size)
     p2 = np.empty(xs.size)
-    _transient_kernel(xs, q, lap, lap, clr, _consts(p), n_steps, float(dt_s), p1, p2)
+    _transient_kernel(xs, q, lap, lap, clr, _consts(p), n_steps, float(dt_s), p1, p2,
+                      np.zeros(xs.size), np.zeros(xs.size))
     if not (np.all(np.isfinite(p1)) and np.all(np.isfinite(p2))):
         bad = int(np.flatnonzero(~(np.isfinite(p1) & np.isfinite(p2)))[0])
         raise FloatingPointError(
@@ -156,6 +164,27 @@ def transient_map(xs_m, q_m3_s, overlap_m=None, clearance_m=None, params=None,
             f'overlap={lap[bad]:g} m, clearance={clr[bad]:g} m: reduce dt_s')
     return MapResult(p1_pa=p1.reshape(shape), p2_pa=p2.reshape(shape),
                      p12_pa=(p1 - p2).reshape(shape))
+
+
+def transient_trace(xs_m: float, q_m3_s: float, n_ticks: int, steps_per_tick: int,
+                    params=None, dt_s: float = 1e-6) -> tuple:
+    """``(p1_pa, p2_pa)`` arrays ``(n_ticks,)`` of one point's map transient at the end of
+    every tick of ``steps_per_tick`` steps: element ``m`` equals :func:`transient_map` with
+    ``t_end_s = (m + 1) steps_per_tick dt_s`` bit for bit, at the cost of one transient."""
+    p = params if params is not None else default_params()
+    _, (xs, q, lap, clr) = _broadcast(xs_m, q_m3_s, None, None, p)
+    consts = _consts(p)
+    raw1, raw2 = np.zeros(1), np.zeros(1)
+    o1, o2 = np.empty(1), np.empty(1)
+    p1, p2 = np.empty(n_ticks), np.empty(n_ticks)
+    for m in range(n_ticks):
+        _transient_kernel(xs, q, lap, lap, clr, consts, int(steps_per_tick), float(dt_s), o1,
+                          o2, raw1, raw2)
+        p1[m], p2[m] = o1[0], o2[0]
+    if not (np.all(np.isfinite(p1)) and np.all(np.isfinite(p2))):
+        raise FloatingPointError(f'map transient diverged at xs={xs_m:g} m, q={q_m3_s:g} '
+                                 'm^3/s: reduce dt_s')
+    return p1, p2
 
 
 @njit(cache=True, parallel=True)
