@@ -167,8 +167,9 @@ def test_conditions_dataclass_round_trip():
 
 def test_graph_maintenance_test_gives_the_benchs_estimate_and_lists_its_conditions(
         eha_graph, tmp_path):
-    """The settled maintenance test through the graph (lockstep, health monitor, recorder):
-    the live monitor's valve-test estimate equals the sweep procedure's - the benchmark's -
+    """The settled maintenance test (two flows) through the graph (lockstep, health monitor,
+    recorder): the live monitor's valve-test estimate equals the sweep procedure's - the
+    benchmark's -
     for the same valve and seed bit for bit (same transients, same sensor readings), and
     eha-diagnose --json replays it and lists the measured conditions each test used."""
     import json
@@ -182,12 +183,13 @@ def test_graph_maintenance_test_gives_the_benchs_estimate_and_lists_its_conditio
             'overlap_return_m': 1.7e-6, 'valve_degradation': 0.05,
             'leakage_coeff_m3_s_pa': 3e-13}
     path = tmp_path / 'maintenance.mcap'
-    r = eha_graph(processes=False, scenario='maintenance_test', plant=wear, health=True,
-                  record=str(path))
+    r = eha_graph(processes=False, scenario='maintenance_test_settled_quick', plant=wear,
+                  health=True, record=str(path))
     live = [m for m in r.health if m.method == 'settled-valve-fit']
-    assert len(live) == 4   # one estimate per completed curve
+    assert len(live) == 2   # one estimate per completed curve
     spec = parse_spec({'procedure': 'valve_test', 'valve_test_procedure': 'settled',
-                       'cases': [dict(wear, seed=0)]}, source='test',
+                       'flows_m3_s': [0.0, 6e-5], 'cases': [dict(wear, seed=0)]},
+                      source='test',
                       base=params_to_dict(default_params()))
     run_sweep(spec, tmp_path / 'sweep', in_process=True)
     row = read_dataset(tmp_path / 'sweep').to_pylist()[0]
@@ -204,8 +206,8 @@ def test_graph_maintenance_test_gives_the_benchs_estimate_and_lists_its_conditio
     assert not vt['assumed']
     assert vt['supply_pressure_pa'] == row['measured_supply_pressure_pa']
     assert abs(vt['supply_pressure_pa'] - P.supply_pressure_pa) <= 6e4   # the sensor's bias
-    assert abs(e_k := d['estimates']['valve_degradation']['value']) >= 0 and abs(
-        e_k - 0.05) <= 2 * d['estimates']['valve_degradation']['std']
+    k = d['estimates']['valve_degradation']
+    assert abs(k['value'] - 0.05) <= 2 * k['std']
     assert set(d['conditions_by_test']) == {'valve-test', 'preflight'}
     e = d['estimates']['radial_clearance_m']
     assert e['value'] == row['est_radial_clearance_m'] and e['method'] == 'settled-valve-fit'
