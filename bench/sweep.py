@@ -56,7 +56,9 @@ def spec_raw(kind: str, n: int) -> dict:
                                                          'overlap_supply_m': [-2e-6, 6e-6]}},
                 'tie': {'overlap_return_m': 'overlap_supply_m'}}
     return {'procedure': 'preflight_check', 'models': ['hf'], 'noise': True,
-            'random': {'n': n, 'seed': 7, 'ranges': {f.name: [f.lo, f.hi] for f in FAULTS}},
+            'random': {'n': n, 'seed': 7, 'ranges': {
+                **{f.name: [f.lo, f.hi] for f in FAULTS},
+                'radial_clearance_m': [1e-6, 6e-6], 'overlap_supply_m': [-2e-6, 6e-6]}},
             'tie': {'overlap_return_m': 'overlap_supply_m'}}
 
 

@@ -184,13 +184,17 @@ def test_preflight_network_reads_held_out_faults():
     from eha_ros.training.preflight import apply_wear
     model = load_faults()
     rng = np.random.default_rng(20261130)
+    from eha_ros.health.preflight import CONDITION_READINGS
+    from eha_ros.physics.bench import mean_conditions, measure_conditions
     names = [f.name for f in FAULTS[:5]]
     for case in range(4):
         wear = {f.name: f.nominal for f in FAULTS}
         for name in rng.choice(names, size=2 + case % 2, replace=False):
             f = next(f for f in FAULTS if f.name == name)
             wear[name] = float(rng.uniform(f.lo, f.hi))
-        est = model.estimate(run_preflight(apply_wear(P, wear), seed=int(rng.integers(1e6))))
+        p, seed = apply_wear(P, wear), int(rng.integers(1e6))
+        est = model.estimate(run_preflight(p, seed=seed), mean_conditions(
+            measure_conditions(p, seed, CONDITION_READINGS)))
         for f in FAULTS[:5]:
             err = est.values[f.name] - wear[f.name]
             assert abs(err) <= 0.10 * f.span, (case, f.name, wear[f.name], est.values[f.name])

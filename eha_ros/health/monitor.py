@@ -404,15 +404,8 @@ class MonitorCore:
             from eha_ros.physics.bench import load_bench, true_conditions
             c = true_conditions(self.params, load_bench(params=self.params))
             conditions = dataclasses.replace(c, assumed=True)
-        import inspect
-        if 'conditions' in inspect.signature(self.faults.estimate).parameters:
-            est = self.faults.estimate(record, conditions)
-            note = getattr(est, 'note', '') or (
-                'test conditions not measured: nominal assumed' if conditions.assumed else '')
-        else:   # a network built at the nominal conditions only: say so
-            est = self.faults.estimate(record)
-            note = 'the pre-flight network does not take the measured test conditions'
-        mismatch = getattr(est, 'mismatch', '')
+        est = self.faults.estimate(record, conditions)
+        mismatch, note = est.mismatch, est.note
         items = {}
         for f in FAULTS:
             if f.name in _WEAR:

@@ -27,6 +27,10 @@ from .params import ParameterError, config_dir, read_yaml
 __all__ = ['Scenario', 'WAVEFORMS', 'command_value', 'command_series', 'load_scenarios',
            'get_scenario']
 
+#: Valve-test procedures a scenario may name (:mod:`.maintenance`): the settled test, and the
+#: reference's 10 ms map transient.
+VALVE_TEST_PROCEDURES = ('settled', 'reference')
+
 WAVEFORMS = ('step', 'ramp', 'sine', 'chirp', 'com')
 STEP, RAMP, SINE, CHIRP, COM = range(5)
 # indices into the parameter vector
@@ -120,7 +124,6 @@ class Scenario:
                 raise ParameterError(f'{where}: com_times_s must be finite and increasing')
         if not np.all(np.isfinite(np.asarray(self.valve_test_flows_m3_s, dtype=float))):
             raise ParameterError(f'{where}: valve_test_flows_m3_s must be finite')
-        from .maintenance import VALVE_TEST_PROCEDURES
         if self.valve_test_procedure not in VALVE_TEST_PROCEDURES:
             raise ParameterError(f'{where}: valve_test_procedure {self.valve_test_procedure!r} '
                                  f'must be one of {", ".join(VALVE_TEST_PROCEDURES)}')

@@ -31,6 +31,7 @@ import math
 
 import numpy as np
 
+from .commands import VALVE_TEST_PROCEDURES, get_scenario
 from .maps import spool_grid, transient_trace
 from .params import ParameterError, PlantParams
 
@@ -55,8 +56,6 @@ SETTLED_HOLD_S = 0.1
 #: piston leakage), a small flow (the null region again, at another balance), then half and
 #: the whole map flow (the metering edges' discharge, so Khsv).
 SETTLED_FLOWS_M3_S = (0.0, 5e-6, 3e-5, 6e-5)
-#: Valve-test procedures (the plant's ``valve_test_procedure``).
-VALVE_TEST_PROCEDURES = ('settled', 'reference')
 
 
 def valve_test_schedule(procedure: str, flows_m3_s=None) -> dict:
@@ -68,7 +67,6 @@ def valve_test_schedule(procedure: str, flows_m3_s=None) -> dict:
                 'n_points': SETTLED_POINTS}
     if procedure == 'reference':
         if flows_m3_s is None:
-            from .commands import get_scenario
             flows_m3_s = get_scenario('valve_test').valve_test_flows_m3_s
         return {'flows_m3_s': tuple(float(q) for q in flows_m3_s), 'hold_s': MAP_HOLD_S,
                 'n_points': MAP_POINTS}

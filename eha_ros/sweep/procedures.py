@@ -327,23 +327,34 @@ class ScenarioProcedure(Procedure):
 
 
 class PreflightProcedure(Procedure):
-    """The pre-flight check (see the module's docstring)."""
+    """The pre-flight check (see the module's docstring).  The network reads each case with
+    the conditions the bench measures for it (:data:`eha_ros.health.preflight.
+    CONDITION_READINGS` readings seeded by the case's seed, averaged); ``ood_score`` and
+    ``mismatch`` (the estimate's refusal is set) come with its estimates."""
 
     from eha_ros.physics.maintenance import PREFLIGHT_SIGNALS, PREFLIGHT_TICK_S
     SIGNALS = ('command_a',) + PREFLIGHT_SIGNALS + ('preflight_features',)
     RECORD_DT_S = PREFLIGHT_TICK_S
+    #: Metrics of the network besides ``est_*`` and ``std_*``.
+    ESTIMATE_METRICS = ('ood_score', 'mismatch')
 
     @classmethod
     def metrics(cls, compare=None) -> tuple:
         from eha_ros.health.preflight import FAULT_NAMES
         out = tuple((f'est_{n}', 'float') for n in FAULT_NAMES)
         out += tuple((f'std_{n}', 'float') for n in FAULT_NAMES)
+        out += (('ood_score', 'float'), ('mismatch', 'bool'))
         return out + (('p12_rel_error', 'float'), ('spool_rel_error', 'float'))
+
+    def _estimates(self) -> bool:
+        """Whether the spec wants the network's metrics."""
+        return any(m in self.ESTIMATE_METRICS or m.startswith(('est_', 'std_'))
+                   for m, _ in self.wanted())
 
     @classmethod
     def check(cls, spec, where: str) -> None:
         super().check(spec, where)
-        if any(m.startswith(('est_', 'std_')) for m, _ in cls(spec).wanted()):
+        if cls(spec)._estimates():
             from eha_ros.health.preflight import load_faults
             try:
                 load_faults()
@@ -352,7 +363,7 @@ class PreflightProcedure(Procedure):
 
     def warm_up(self) -> None:
         super().warm_up()
-        if any(m.startswith(('est_', 'std_')) for m, _ in self.wanted()):
+        if self._estimates():
             from eha_ros.health.preflight import load_faults
             load_faults()
 
@@ -371,7 +382,7 @@ class PreflightProcedure(Procedure):
     def run_point(self, point) -> list:
         from eha_ros.physics.maintenance import run_preflight
         wanted = {m for m, _ in self.wanted()}
-        estimate = any(m.startswith(('est_', 'std_')) for m in wanted)
+        estimate = self._estimates()
         t0 = time.perf_counter()
         rows, ref = [], None
         try:
@@ -385,11 +396,15 @@ class PreflightProcedure(Procedure):
             try:
                 rec = run_preflight(p, seed=point.seed, dt_s=c.dt_s, fluid=self.model(c.model))
                 m = {}
-                if estimate:
-                    from eha_ros.health.preflight import load_faults
-                    e = load_faults().estimate(rec)
+                if estimate:   # with the conditions the bench measures (seeded by the case)
+                    from eha_ros.health.preflight import CONDITION_READINGS, load_faults
+                    from eha_ros.physics.bench import mean_conditions, measure_conditions
+                    cond = mean_conditions(measure_conditions(p, point.seed,
+                                                              CONDITION_READINGS))
+                    e = load_faults().estimate(rec, cond)
                     m.update({f'est_{n}': v for n, v in e.values.items()})
                     m.update({f'std_{n}': v for n, v in e.stds.items()})
+                    m.update(ood_score=e.ood_score, mismatch=bool(e.mismatch))
                 if c.model == 'hf':
                     ref = rec
                 elif wanted & {'p12_rel_error', 'spool_rel_error'}:

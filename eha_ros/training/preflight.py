@@ -1,18 +1,43 @@
 """Generate the pre-flight data and train the pre-flight network
 (:mod:`eha_ros.health.preflight`); write ``faults.npz``.
 
-Data (:func:`generate`)
+Data (:func:`cases`, :func:`generate_sets`)
     The pre-flight check on the high-fidelity plant (:func:`eha_ros.physics.maintenance.
-    run_preflight`, 1 us step) at wear points drawn independently per case from a seeded
-    stream: half with every parameter uniform over its range, half with each degraded with
-    probability 0.3 and nominal otherwise (so the nominal valve is well covered); the torque
-    motor's noise seed drawn too.  Dynamic frictions follow their breakaway values at the
-    nominal ratio.  Training, validation and the benchmark's test cases come from different
-    streams.
+    run_preflight`, 1 us step).  Case ``i`` of stream ``s`` draws from its own generator
+    ``default_rng([s, i])``, independently:
 
-The 3,000 checks run as a sweep (:mod:`eha_ros.sweep`, one single-threaded worker process per
-core).  Build: ``nice python -m eha_ros.training.preflight`` (data about 4 min on 2 cores,
-training a few minutes) writes ``faults.npz``.
+    * the five faults of :data:`~eha_ros.health.preflight.FAULTS`: every one uniform over its
+      range (even ``i``), or each degraded with probability 0.3 and nominal otherwise (odd
+      ``i``, so the nominal valve is well covered); dynamic frictions follow their breakaway
+      values at the nominal ratio;
+    * the drift no bench measures (domain randomisation): every entry of the test bench's
+      ``nuisance`` (:mod:`eha_ros.physics.bench`, ``config/test_bench.yaml``) uniform over its
+      range, and the spool's radial clearance and overlap (both edges equal) uniform over
+      :data:`VALVE_NUISANCE` (the valve test reads those);
+    * the true test conditions uniform over the bench's ``service`` envelope: supply and
+      return pressure, and the fluid temperature (viscosity and density by the fluid law);
+    * the noise seed, which also seeds the bench's measurement of the conditions
+      (:func:`eha_ros.physics.bench.measure_conditions`, :data:`CONDITION_READINGS` readings,
+      averaged): the network's last three inputs.
+
+    Training, validation, calibration, the OOD limit and the benchmark
+    (``bench/health_preflight.py``) use different streams.
+
+Training and calibration (:func:`build_artefact`)
+    The ensemble on the training stream; per fault a deviation factor (at least 1) such that
+    95 % of the validation cases and 95 % of the 2-3-fault combination cases (each set on its
+    own, the larger factor kept) lie within 2 sigma; the out-of-distribution model
+    (:class:`~eha_ros.health.preflight.OodModel`: ridge estimates of every drawn parameter
+    fitted on the training stream, their deviations and penalties on the validation stream;
+    the principal subspace of the training inputs), its limit from a further drifted stream
+    (``ood``), on which the calibrated deviations are checked too.
+
+The checks run as sweeps (:mod:`eha_ros.sweep`, one single-threaded worker process per core),
+one per set, in blocks of :data:`BLOCK` cases.  Build: ``nice python -m
+eha_ros.training.preflight --data DIR`` writes ``faults.npz``; ``DIR`` keeps the sweeps, and a
+rerun reads what they already hold.  The 7,600 checks took 1,632 s on 2 workers (sharing the
+2 cores with other jobs, load average 3-9); a rerun on the kept data took 84 s, of which
+training 45 s.
 """
 
 from __future__ import annotations
@@ -23,30 +48,42 @@ from pathlib import Path
 import numpy as np
 
 from eha_ros.artefacts import models_dir, save_artefact
-from eha_ros.health.preflight import (_BY_NAME, FAULT_NAMES, FAULTS, FAULTS_FILE,
-                                      FaultModel)
+from eha_ros.health.preflight import (CONDITION_READINGS, FAULT_NAMES, FAULTS, FAULTS_FILE,
+                                      N_INPUTS, RING_COLUMNS, FaultModel, OodModel, Subspace)
 from eha_ros.physics import PlantParams, default_params
+from eha_ros.physics.bench import (CONDITIONS, fluid_at, load_bench, mean_conditions,
+                                   measure_conditions)
 from eha_ros.physics.maps import fluid_hash
 from eha_ros.physics.params import replace
 
-__all__ = ['FAULT_SETTINGS', 'draw_wear', 'apply_wear', 'wear_changes', 'cases',
-           'combination_cases', 'data_sets', 'generate', 'generate_sets', 'train_faults',
-           'calibrate', 'recalibrate', 'build_artefact']
+__all__ = ['FAULT_SETTINGS', 'VALVE_NUISANCE', 'BLOCK', 'draw_wear', 'inner_service',
+           'draw_drift',
+           'apply_wear', 'wear_changes', 'cases', 'combination_cases', 'case_params',
+           'case_conditions', 'data_sets', 'generate', 'generate_sets', 'train_faults',
+           'calibrate', 'recalibrate', 'envelope_parameters', 'envelope_targets', 'fit_ood',
+           'build_artefact']
 
 #: Dynamic friction over breakaway friction for the drawn cases (the parameters' nominal).
 FRICTION_RATIO = 0.5
-
+#: Valve geometry drawn as nuisance (the valve test reads it): ``name -> (lo, hi)`` [m]; the
+#: overlap sets both edges.
+VALVE_NUISANCE = {'radial_clearance_m': (1e-6, 6e-6), 'overlap_supply_m': (-2e-6, 6e-6)}
+#: Cases per sweep of a set (a set of more runs as several sweeps, each resumable).
+BLOCK = 1000
 
 FAULT_SETTINGS = {
-    'n_train': 2400, 'n_val': 400, 'seed_train': 11, 'seed_val': 12, 'members': 4,
-    'n_cal': 200, 'seed_cal': 13,
-    'hidden': [128, 64], 'warmup_steps': 1500, 'nll_steps': 2500, 'lr': 2e-3,
-    'weight_decay': 1e-4, 'degrade_probability': 0.3,
+    'n_train': 6000, 'seed_train': 21, 'n_val': 600, 'seed_val': 22,
+    'n_cal': 400, 'seed_cal': 23, 'n_ood': 600, 'seed_ood': 24,
+    'members': 4, 'hidden': [128, 64], 'batch': 256, 'warmup_epochs': 40, 'nll_epochs': 80,
+    'lr': 1e-3, 'weight_decay': 1e-4, 'degrade_probability': 0.3,
+    'ood_subspaces': [[0, N_INPUTS, 0.99], list(RING_COLUMNS) + [0.9999]],
+    'ood_quantile': 0.995, 'ood_margin': 1.25,
+    'ridge_lambdas': [0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0],
 }
 
 
 def draw_wear(rng: np.random.Generator, sparse: bool, p_degrade: float = 0.3) -> dict:
-    """Plant parameters of one case: every fault uniform over its range, or (``sparse``) each
+    """The five faults of one case: every one uniform over its range, or (``sparse``) each
     degraded with probability ``p_degrade`` and nominal otherwise."""
     out = {}
     for f in FAULTS:
@@ -56,39 +93,42 @@ def draw_wear(rng: np.random.Generator, sparse: bool, p_degrade: float = 0.3) ->
     return out
 
 
+def inner_service(bench=None) -> dict:
+    """The service envelope less each sensor's calibration error and three noise
+    deviations: true conditions in it are measured within the envelope."""
+    b = bench or load_bench()
+    out = {}
+    for name, (lo, hi) in b.service.items():
+        m = b.sensors[name].bias + 3 * b.sensors[name].noise_std
+        out[name] = (lo + m, hi - m)
+    return out
+
+
+def draw_drift(rng: np.random.Generator, bench=None, params: PlantParams | None = None,
+               inner: bool = False) -> dict:
+    """Plant parameters of the unmeasured drift and the true test conditions of one case:
+    each bench nuisance and :data:`VALVE_NUISANCE` entry uniform over its range, supply and
+    return pressure and the fluid temperature uniform over the service envelope (``inner``:
+    over :func:`inner_service`), the fluid's viscosity and density at that temperature."""
+    b = bench or load_bench()
+    p = params or default_params()
+    service = inner_service(b) if inner else b.service
+    out = {}
+    for name in b.nuisance:
+        lo, hi = b.nuisance_range(name, p)
+        out[name] = float(rng.uniform(lo, hi))
+    for name, (lo, hi) in VALVE_NUISANCE.items():
+        out[name] = float(rng.uniform(lo, hi))
+    for name in ('supply_pressure_pa', 'return_pressure_pa'):
+        out[name] = float(rng.uniform(*service[name]))
+    out.update(fluid_at(float(rng.uniform(*service['fluid_temperature_k'])), b))
+    return out
+
+
 def apply_wear(params: PlantParams, wear: dict) -> PlantParams:
-    """``params`` with the faults of ``wear`` (names of :data:`FAULTS`; frictions set their
-    dynamic values at :data:`FRICTION_RATIO`, the overlap both edges)."""
+    """``params`` with the plant parameters of ``wear`` (frictions set their dynamic values
+    at :data:`FRICTION_RATIO`, the overlap both edges)."""
     return replace(params, **wear_changes(wear))
-
-
-def cases(n: int, stream: int, p_degrade: float = 0.3):
-    """``n`` (wear, noise seed) cases of stream ``stream``: case ``i`` from its own generator
-    ``default_rng([stream, i])``, sparse for odd ``i``."""
-    out = []
-    for i in range(n):
-        rng = np.random.default_rng([stream, i])
-        wear = draw_wear(rng, sparse=bool(i % 2), p_degrade=p_degrade)
-        out.append((wear, int(rng.integers(0, 2 ** 31 - 1))))
-    return out
-
-
-def combination_cases(n: int, stream: int):
-    """``n`` cases as maintenance finds them: two or three of the five faults (alternately)
-    uniform over their ranges, the others nominal, clearance and overlap uniform; case ``i``
-    from ``default_rng([stream, i])``."""
-    out = []
-    for i in range(n):
-        rng = np.random.default_rng([stream, i])
-        wear = {f.name: f.nominal for f in FAULTS}
-        for name in ('radial_clearance_m', 'overlap_supply_m'):
-            f = _BY_NAME[name]
-            wear[name] = float(rng.uniform(f.lo, f.hi))
-        for j in rng.choice(5, size=2 + i % 2, replace=False):
-            f = FAULTS[j]
-            wear[f.name] = float(rng.uniform(f.lo, f.hi))
-        out.append((wear, int(rng.integers(0, 2 ** 31 - 1))))
-    return out
 
 
 def wear_changes(wear: dict) -> dict:
@@ -103,56 +143,131 @@ def wear_changes(wear: dict) -> dict:
     return w
 
 
+def cases(n: int, stream: int, p_degrade: float = 0.3, drift: bool = True,
+          inner: bool = False):
+    """``n`` cases of stream ``stream`` as ``(plant changes, seed)``: case ``i`` from its
+    own generator ``default_rng([stream, i])``, sparse for odd ``i``; with ``drift`` the
+    nuisances and conditions drawn too (:func:`draw_drift`, ``inner``), nominal
+    otherwise."""
+    b, p = load_bench(), default_params()
+    out = []
+    for i in range(n):
+        rng = np.random.default_rng([stream, i])
+        wear = draw_wear(rng, sparse=bool(i % 2), p_degrade=p_degrade)
+        if drift:
+            wear.update(draw_drift(rng, b, p, inner))
+        out.append((wear, int(rng.integers(0, 2 ** 31 - 1))))
+    return out
+
+
+def combination_cases(n: int, stream: int, drift: bool = True):
+    """``n`` cases as maintenance finds them: two or three of the five faults (alternately)
+    uniform over their ranges, the others nominal; with ``drift`` the nuisances and
+    conditions drawn (:func:`draw_drift`); case ``i`` from ``default_rng([stream, i])``."""
+    b, p = load_bench(), default_params()
+    out = []
+    for i in range(n):
+        rng = np.random.default_rng([stream, i])
+        wear = {f.name: f.nominal for f in FAULTS}
+        for j in rng.choice(len(FAULTS), size=2 + i % 2, replace=False):
+            f = FAULTS[j]
+            wear[f.name] = float(rng.uniform(f.lo, f.hi))
+        if drift:
+            wear.update(draw_drift(rng, b, p))
+        out.append((wear, int(rng.integers(0, 2 ** 31 - 1))))
+    return out
+
+
+def case_params(case, params: PlantParams | None = None) -> PlantParams:
+    """Plant parameters of a case ``(changes, seed)``."""
+    return apply_wear(params if params is not None else default_params(), case[0])
+
+
+def case_conditions(case, params: PlantParams | None = None):
+    """The measured conditions of a case: the mean of :data:`CONDITION_READINGS` bench
+    readings seeded by the case's seed."""
+    return mean_conditions(measure_conditions(case_params(case, params), case[1],
+                                              CONDITION_READINGS))
+
+
 def generate(case_list, params: PlantParams | None = None, workers: int = 2,
              progress=None, out=None) -> tuple[np.ndarray, np.ndarray]:
-    """Features ``(n, 770)`` and targets ``(n, len(FAULTS))`` of the pre-flight check on the
-    high-fidelity plant for ``case_list`` (from :func:`cases`); see :func:`generate_sets`."""
+    """Network inputs ``(n, N_INPUTS)`` and targets ``(n, len(FAULTS))`` of the pre-flight
+    check on the high-fidelity plant for ``case_list`` (from :func:`cases`); see
+    :func:`generate_sets`."""
     return generate_sets({'cases': case_list}, params, workers, progress, out)['cases']
 
 
 def generate_sets(sets: dict, params: PlantParams | None = None, workers: int = 2,
-                  progress=None, out=None) -> dict:
-    """``{name: (features, targets)}`` for ``{name: case_list}``: every case of every set run
-    as one sweep (:mod:`eha_ros.sweep`: ``workers`` single-threaded processes, in this
-    process for one; one cluster, each worker compiling the plant once).  ``out``: the
-    sweep's dataset folder, kept and resumed if it holds these cases; a temporary one
-    otherwise.  ``progress``: show the sweep's progress bar."""
+                  progress=None, out=None, stats: dict | None = None) -> dict:
+    """``{name: (inputs, targets)}`` for ``{name: case_list}``: the inputs are the check's
+    features (:func:`~eha_ros.health.preflight.preflight_features`) followed by the case's
+    measured conditions (:func:`case_conditions`).  Each set runs as sweeps of at most
+    :data:`BLOCK` cases (:mod:`eha_ros.sweep`: ``workers`` single-threaded processes, in
+    this process for one).  ``out``: a folder holding one sweep dataset per set and block
+    (``name-k``), kept and resumed; temporary ones otherwise.  ``progress``: show the
+    sweeps' progress bars.  ``stats``: gets ``worker_s``, the workers' time running the checks
+    (when they ran, also in an earlier run resumed here)."""
     import tempfile
 
     from eha_ros.physics import params_to_dict
     from eha_ros.sweep import SweepError, parse_spec, read_dataset, run_sweep
     p = params if params is not None else default_params()
-    every = [c for case_list in sets.values() for c in case_list]
-    raw = {'procedure': 'preflight_check', 'models': ['hf'], 'noise': True, 'metrics': [],
-           'signals': ['preflight_features'],
-           'cases': [{**wear_changes(w), 'seed': int(seed)} for w, seed in every]}
-    spec = parse_spec(raw, source='pre-flight data', base=params_to_dict(p))
-    ids = [pt.cases[0].case_id for pt in spec.points()]
+    out_sets = {}
     with tempfile.TemporaryDirectory(prefix='eha-preflight-') as tmp:
-        folder = Path(out) if out is not None else Path(tmp) / 'sweep'
-        resume = folder.is_dir() and any(folder.iterdir())
-        run_sweep(spec, folder, workers=workers, in_process=workers <= 1, resume=resume,
-                  progress=bool(progress))
-        t = read_dataset(folder).select(['case_id', 'status', 'error',
-                                         'signal_preflight_features'])
-    row = {c: k for k, c in enumerate(t.column('case_id').to_pylist())}
-    status = t.column('status').to_pylist()
-    bad = [i for i in ids if status[row[i]] != 'ok']
-    if bad:
-        raise SweepError(f'pre-flight data: {len(bad)} cases did not run, first: '
-                         f'{t.column("error")[row[bad[0]]]}')
-    col = t.column('signal_preflight_features').combine_chunks()
-    feats = col.flatten().to_numpy().reshape(len(col), -1)
-    x = feats[[row[i] for i in ids]]
-    out_sets, k = {}, 0
-    for name, case_list in sets.items():
-        y = np.array([[w[n] for n in FAULT_NAMES] for w, _ in case_list])
-        out_sets[name] = (x[k:k + len(case_list)], y)
-        k += len(case_list)
+        root = Path(out) if out is not None else Path(tmp)
+        for name, case_list in sets.items():
+            feats = []
+            for k in range(0, len(case_list), BLOCK):
+                block = case_list[k:k + BLOCK]
+                raw = {'procedure': 'preflight_check', 'models': ['hf'], 'noise': True,
+                       'metrics': [], 'signals': ['preflight_features'],
+                       'cases': [{**wear_changes(w), 'seed': int(seed)} for w, seed in block]}
+                spec = parse_spec(raw, source=f'pre-flight data {name}',
+                                  base=params_to_dict(p))
+                ids = [pt.cases[0].case_id for pt in spec.points()]
+                folder = root / f'{name}-{k // BLOCK}'
+                resume = folder.is_dir() and any(folder.iterdir())
+                if progress and not resume:
+                    progress(f'{folder}: {len(block)} pre-flight checks')
+                run_sweep(spec, folder, workers=workers, in_process=workers <= 1,
+                          resume=resume, progress=bool(progress))
+                t = read_dataset(folder).select(['case_id', 'status', 'error', 'wall_s',
+                                                 'signal_preflight_features'])
+                if stats is not None:
+                    stats['worker_s'] = stats.get('worker_s', 0.0) + float(np.nansum(
+                        np.array(t.column('wall_s').to_pylist(), dtype=float)))
+                row = {c: j for j, c in enumerate(t.column('case_id').to_pylist())}
+                status = t.column('status').to_pylist()
+                bad = [i for i in ids if status[row[i]] != 'ok']
+                if bad:
+                    raise SweepError(f'pre-flight data {name}: {len(bad)} cases did not run, '
+                                     f'first: {t.column("error")[row[bad[0]]]}')
+                col = t.column('signal_preflight_features').combine_chunks()
+                f = col.flatten().to_numpy().reshape(len(col), -1)
+                feats.append(f[[row[i] for i in ids]])
+            cond = np.array([case_conditions(c, p).array() for c in case_list])
+            x = np.hstack([np.vstack(feats), cond])
+            y = np.array([[w[n] for n in FAULT_NAMES] for w, _ in case_list])
+            out_sets[name] = (x, y)
     return out_sets
 
 
-def _train_member(x, y, xv, yv, hidden, seed, s):
+def data_sets(settings: dict | None = None) -> dict:
+    """The cases of the build: ``train``, ``val`` (drifted, as training), ``cal`` (drifted
+    2-3-fault combinations) and ``ood`` (drifted, as training: the OOD limit)."""
+    s = dict(FAULT_SETTINGS, **(settings or {}))
+    pd = s['degrade_probability']
+    return {'train': cases(s['n_train'], s['seed_train'], pd),
+            'val': cases(s['n_val'], s['seed_val'], pd),
+            'cal': combination_cases(s['n_cal'], s['seed_cal']),
+            'ood': cases(s['n_ood'], s['seed_ood'], pd)}
+
+
+def _train_member(x, y, hidden, seed, s):
+    """One member: Adam on mini-batches of ``batch`` cases, ``warmup_epochs`` of mean squared
+    error on the means, then ``nll_epochs`` of Gaussian negative log-likelihood; cosine
+    learning-rate decay to 2 % (float32; the weights returned as float64)."""
     import torch
     torch.manual_seed(seed)
     k = y.shape[1]
@@ -161,122 +276,234 @@ def _train_member(x, y, xv, yv, hidden, seed, s):
         layers += [torch.nn.Linear(d, h), torch.nn.Tanh()]
         d = h
     layers.append(torch.nn.Linear(d, 2 * k))
-    net = torch.nn.Sequential(*layers).double()
-    xt, yt = torch.as_tensor(x), torch.as_tensor(y)
+    net = torch.nn.Sequential(*layers).float()
+    xt = torch.as_tensor(x, dtype=torch.float32)
+    yt = torch.as_tensor(y, dtype=torch.float32)
+    n, bs = len(xt), int(s['batch'])
+    per_epoch = -(-n // bs)
+    epochs = s['warmup_epochs'] + s['nll_epochs']
     opt = torch.optim.Adam(net.parameters(), lr=s['lr'], weight_decay=s['weight_decay'])
-    steps = s['warmup_steps'] + s['nll_steps']
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=s['lr'] * 0.02)
-    for step in range(steps):
-        opt.zero_grad()
-        o = net(xt)
-        mu, lv = o[:, :k], o[:, k:].clamp(-30, 10)
-        if step < s['warmup_steps']:
-            loss = ((mu - yt) ** 2).mean()
-        else:
-            loss = (0.5 * (lv + (mu - yt) ** 2 / lv.exp())).mean()
-        loss.backward()
-        opt.step()
-        sched.step()
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, epochs * per_epoch,
+                                                       eta_min=s['lr'] * 0.02)
+    for epoch in range(epochs):
+        order = torch.randperm(n)
+        for j in range(per_epoch):
+            idx = order[j * bs:(j + 1) * bs]
+            opt.zero_grad()
+            o = net(xt[idx])
+            mu, lv = o[:, :k], o[:, k:].clamp(-30, 10)
+            if epoch < s['warmup_epochs']:
+                loss = ((mu - yt[idx]) ** 2).mean()
+            else:
+                loss = (0.5 * (lv + (mu - yt[idx]) ** 2 / lv.exp())).mean()
+            loss.backward()
+            opt.step()
+            sched.step()
     out = []
     for m in net:
         if isinstance(m, torch.nn.Linear):
-            out.append((m.weight.detach().numpy().T.copy(), m.bias.detach().numpy().copy()))
+            out.append((m.weight.detach().double().numpy().T.copy(),
+                        m.bias.detach().double().numpy().copy()))
     return out
 
 
-def calibrate(model: FaultModel, x, y) -> FaultModel:
-    """Per parameter, the factor (at least 1) on the ensemble's deviation that puts 95 % of
-    the cases ``(x, y)`` (SI targets) within 2 sigma; stored in ``model.calibration``."""
+def _normalised(y):
     lo = np.array([f.lo for f in FAULTS])
     span = np.array([f.span for f in FAULTS])
+    return (y - lo) / span
+
+
+def _figures(model: FaultModel, x, y) -> dict:
+    """Mean absolute error in % of each range and the fraction within 2 sigma."""
+    mu, sd = model.predict_normalised(x)
+    err = np.abs(mu - _normalised(y))
+    return {'mean_abs_error_pct': dict(zip(FAULT_NAMES, np.round(100 * err.mean(axis=0),
+                                                                 3).tolist())),
+            'within_2sigma': dict(zip(FAULT_NAMES, np.round(np.mean(err <= 2 * sd, axis=0),
+                                                            3).tolist()))}
+
+
+def calibrate(model: FaultModel, x, y) -> np.ndarray:
+    """Per fault, the factor (at least 1) on the ensemble's uncalibrated deviation that puts
+    95 % of the cases ``(x, y)`` (SI targets) within 2 sigma."""
+    keep = model.calibration
     model.calibration = np.ones(len(FAULTS))
     mu, sd = model.predict_normalised(x)
-    ratio = np.abs(mu - (y - lo) / span) / sd
-    model.calibration = np.maximum(1.0, np.quantile(ratio, 0.95, axis=0) / 2.0)
-    return model
+    model.calibration = keep
+    ratio = np.abs(mu - _normalised(y)) / sd
+    return np.maximum(1.0, np.quantile(ratio, 0.95, axis=0) / 2.0)
 
 
-def train_faults(x, y, xv, yv, settings: dict | None = None, threads: int = 2) -> FaultModel:
-    """Train the ensemble on ``(x, y)`` and calibrate its deviations on ``(xv, yv)``
-    (targets in SI, as :func:`generate` returns them)."""
+def train_faults(x, y, settings: dict | None = None, threads: int = 1) -> FaultModel:
+    """Train the ensemble on inputs ``x`` (:func:`generate_sets`) and SI targets ``y``
+    (uncalibrated, no OOD model yet) on ``threads`` torch threads (small batches: more
+    threads than free cores slow it down many times)."""
     import torch
     torch.set_num_threads(threads)
     s = dict(FAULT_SETTINGS, **(settings or {}))
-    lo = np.array([f.lo for f in FAULTS])
-    span = np.array([f.span for f in FAULTS])
     in_mean = x.mean(axis=0)
     in_std = np.maximum(x.std(axis=0), 1e-12 + 1e-9 * np.abs(in_mean))
-    z, zv = (x - in_mean) / in_std, (xv - in_mean) / in_std
-    u, uv = (y - lo) / span, (yv - lo) / span
-    members = [_train_member(z, u, zv, uv, s['hidden'], seed, s)
+    z = (x - in_mean) / in_std
+    members = [_train_member(z, _normalised(y), s['hidden'], seed, s)
                for seed in range(s['members'])]
-    model = calibrate(FaultModel(in_mean, in_std, members, np.ones(len(FAULTS)), {}), xv, yv)
-    mu, sd = model.predict_normalised(xv)
-    model.meta = {'outputs': list(FAULT_NAMES), 'hidden': list(s['hidden']),
-                  'settings': s,
-                  'validation_mean_abs_error_pct': dict(zip(
-                      FAULT_NAMES, np.round(100 * np.mean(np.abs(mu - uv), axis=0), 3).tolist())),
-                  'validation_within_2sigma': dict(zip(
-                      FAULT_NAMES, np.round(np.mean(np.abs(mu - uv) <= 2 * sd, axis=0),
-                                            3).tolist())),
-                  'calibration': dict(zip(FAULT_NAMES, np.round(model.calibration,
-                                                                3).tolist())),
-                  'ranges': {f.name: [f.lo, f.hi] for f in FAULTS}}
+    return FaultModel(in_mean, in_std, members, np.ones(len(FAULTS)),
+                      {'outputs': list(FAULT_NAMES), 'hidden': list(s['hidden'])})
+
+
+def recalibrate(model: FaultModel, sets: dict) -> FaultModel:
+    """Calibrate on each held-out set of ``{name: (x, y)}`` on its own and keep the largest
+    factor per fault: the deviations must hold on every one."""
+    factors = {name: calibrate(model, x, y) for name, (x, y) in sets.items()}
+    model.calibration = np.max(np.array(list(factors.values())), axis=0)
+    model.meta['calibration'] = dict(zip(FAULT_NAMES, np.round(model.calibration,
+                                                               3).tolist()))
+    model.meta['calibration_sets'] = {name: dict(zip(FAULT_NAMES, np.round(f, 3).tolist()))
+                                      for name, f in factors.items()}
     return model
 
 
-def recalibrate(model: FaultModel, xv, yv, xc, yc) -> FaultModel:
-    """Calibrate on the validation cases and on ``n_cal`` combination cases
-    (:func:`combination_cases`, stream ``seed_cal``), each on its own, and keep the larger
-    factor: the deviations must hold both on the training distribution and on the 2-3-fault
-    combinations maintenance meets."""
-    c_val = calibrate(model, xv, yv).calibration
-    c_comb = calibrate(model, xc, yc).calibration
-    model.calibration = np.maximum(c_val, c_comb)
-    lo = np.array([f.lo for f in FAULTS])
-    span = np.array([f.span for f in FAULTS])
-    mu, sd = model.predict_normalised(xc)
-    u = (yc - lo) / span
-    model.meta['calibration'] = dict(zip(FAULT_NAMES, np.round(model.calibration, 3).tolist()))
-    model.meta['calibration_set'] = {'cases': int(len(xc)) + int(len(xv)),
-                                     'combination_cases': int(len(xc))}
-    model.meta['combination_within_2sigma'] = dict(zip(
-        FAULT_NAMES, np.round(np.mean(np.abs(mu - u) <= 2 * sd, axis=0), 3).tolist()))
-    mu, sd = model.predict_normalised(xv)
-    model.meta['validation_within_2sigma'] = dict(zip(
-        FAULT_NAMES, np.round(np.mean(np.abs(mu - (yv - lo) / span) <= 2 * sd, axis=0),
-                              3).tolist()))
-    return model
+def envelope_parameters(bench=None) -> tuple:
+    """Names and ``(lo, hi)`` ranges of every parameter the data is drawn over: the faults,
+    the bench's nuisances, :data:`VALVE_NUISANCE` and the service conditions."""
+    b, p = bench or load_bench(), default_params()
+    ranges = {f.name: (f.lo, f.hi) for f in FAULTS}
+    ranges.update({n: b.nuisance_range(n, p) for n in b.nuisance})
+    ranges.update(VALVE_NUISANCE)
+    ranges.update({n: tuple(b.service[n]) for n in CONDITIONS})
+    return tuple(ranges), np.array(list(ranges.values()), dtype=float)
 
 
-def data_sets(settings: dict | None = None) -> dict:
-    """The training, validation and calibration cases (``{'train', 'val', 'cal'}``)."""
+def envelope_targets(case_list, bench=None) -> np.ndarray:
+    """The parameters of :func:`envelope_parameters` of each case, normalised to their
+    ranges (the true fluid temperature from the viscosity)."""
+    b, p = bench or load_bench(), default_params()
+    names, ranges = envelope_parameters(b)
+    rows = []
+    for w, _ in case_list:
+        row = []
+        for n in names:
+            if n == 'fluid_temperature_k':
+                row.append(b.fluid.temperature_k(w.get('fluid_kinematic_viscosity_m2_s',
+                                                       p.fluid_kinematic_viscosity_m2_s)))
+            else:
+                row.append(w.get(n, getattr(p, n)))
+        rows.append(row)
+    return (np.array(rows) - ranges[:, 0]) / (ranges[:, 1] - ranges[:, 0])
+
+
+def _fit_subspace(z, start: int, stop: int, variance: float) -> Subspace:
+    """The principal subspace of ``z[:, start:stop]`` holding ``variance`` of its variance."""
+    zz = z[:, start:stop]
+    w, v = np.linalg.eigh(zz.T @ zz / len(zz))
+    w, v = w[::-1], v[:, ::-1]
+    k = int(np.searchsorted(np.cumsum(w) / np.sum(w), variance) + 1)
+    basis = v[:, :k].T.copy()
+    t = zz @ basis.T
+    r2 = np.maximum(np.sum(zz ** 2, axis=1) - np.sum(t ** 2, axis=1), 0.0)
+    return Subspace(start, stop, basis, np.maximum(w[:k], 1e-12), float(np.mean(r2)))
+
+
+def fit_ood(model: FaultModel, x, u, xv, uv, x_limit, settings: dict | None = None
+            ) -> FaultModel:
+    """The OOD model (:class:`~eha_ros.health.preflight.OodModel`) from the training inputs
+    ``x`` with their normalised parameters ``u`` (:func:`envelope_targets`): per parameter
+    the ridge penalty of ``ridge_lambdas`` with the smallest residual deviation on the
+    validation set ``(xv, uv)``, and the 99 % quantile of its absolute error there as the
+    parameter's scale; per entry ``(start, stop, variance)`` of ``ood_subspaces`` the
+    principal subspace of those training input columns holding that fraction of their
+    variance.  Each test's limit: the ``ood_quantile`` of its scores on the held-out inputs
+    ``x_limit`` times ``ood_margin``; the subspace scores are scaled to the envelope's."""
     s = dict(FAULT_SETTINGS, **(settings or {}))
-    return {'train': cases(s['n_train'], s['seed_train'], s['degrade_probability']),
-            'val': cases(s['n_val'], s['seed_val'], s['degrade_probability']),
-            'cal': combination_cases(s['n_cal'], s['seed_cal'])}
+    names, _ = envelope_parameters()
+    z, zv = model.standardise(x), model.standardise(xv)
+    u_mean = u.mean(axis=0)
+    left, sv, vt = np.linalg.svd(z, full_matrices=False)
+    proj = left.T @ (u - u_mean)
+    best_w = np.zeros((z.shape[1], u.shape[1]))
+    sigmas = np.full(u.shape[1], np.inf)
+    lambdas = np.zeros(u.shape[1])
+    for lam in s['ridge_lambdas']:
+        w = vt.T @ ((sv / (sv ** 2 + lam))[:, None] * proj)
+        sd = np.std(zv @ w + u_mean - uv, axis=0)
+        better = sd < sigmas
+        best_w[:, better], sigmas[better], lambdas[better] = w[:, better], sd[better], lam
+    scales = np.quantile(np.abs(zv @ best_w + u_mean - uv), 0.99, axis=0)
+    ood = OodModel(np.vstack([best_w, u_mean]), scales, [], np.inf)
+    zl = model.standardise(x_limit)
+    env = ood.envelope(zl)
+    ood.limit = float(np.quantile(env, s['ood_quantile']) * s['ood_margin'])
+    tests = []
+    for start, stop, var in s['ood_subspaces']:
+        t = _fit_subspace(z, int(start), int(stop), var)
+        t.scale = ood.limit / float(np.quantile(t.score(zl), s['ood_quantile'])
+                                    * s['ood_margin'])
+        ood.subspaces.append(t)
+        tests.append({'columns': [t.start, t.stop], 'explained_variance': var,
+                      'components': int(len(t.variances)), 'residual_ms': t.residual_ms,
+                      'scale': t.scale})
+    model.ood = ood
+    held = ood.score(zl)
+    model.meta['ood'] = {
+        'parameters': list(names), 'ridge_lambda': dict(zip(names, lambdas.tolist())),
+        'sigma': dict(zip(names, np.round(sigmas, 4).tolist())),
+        'scale': dict(zip(names, np.round(scales, 4).tolist())),
+        'subspaces': tests, 'limit': ood.limit, 'quantile': s['ood_quantile'],
+        'margin': s['ood_margin'], 'limit_cases': int(len(x_limit)),
+        'held_out_score_quantiles': {str(q): round(float(np.quantile(held, q)), 3)
+                                     for q in (0.5, 0.9, 0.99, 0.995, 1.0)},
+        'held_out_flagged': round(float(np.mean(held > ood.limit)), 4)}
+    return model
+
+
+def _envelope(settings: dict) -> dict:
+    """What the data was drawn over (for the artefact's ``meta``)."""
+    b, p = load_bench(), default_params()
+    return {'faults': {f.name: [f.lo, f.hi] for f in FAULTS},
+            'nuisance': {n: list(b.nuisance_range(n, p)) for n in b.nuisance},
+            'valve_nuisance': {n: list(r) for n, r in VALVE_NUISANCE.items()},
+            'service': {n: list(b.service[n]) for n in b.service},
+            'degrade_probability': settings['degrade_probability'],
+            'friction_ratio': FRICTION_RATIO}
 
 
 def build_artefact(out: Path | None = None, settings: dict | None = None, workers: int = 2,
                    progress=print, data: Path | None = None) -> FaultModel:
-    """Generate the data (one sweep; ``data``: keep its dataset there, resumed if present),
-    train, save ``models/faults.npz``."""
+    """Generate the data (``data``: keep the sweeps there, resumed if present), train,
+    calibrate, fit the OOD model, save ``models/faults.npz``."""
     s = dict(FAULT_SETTINGS, **(settings or {}))
     p = default_params()
     t0 = time.perf_counter()
-    d = generate_sets(data_sets(s), p, workers, progress, data)
-    (x, y), (xv, yv), (xc, yc) = d['train'], d['val'], d['cal']
+    sets = data_sets(s)
+    stats = {}
+    d = generate_sets(sets, p, workers, progress, data, stats)
     t_data = time.perf_counter() - t0
-    model = train_faults(x, y, xv, yv, s, threads=workers)
-    recalibrate(model, xv, yv, xc, yc)
-    model.meta['data_s'] = round(t_data, 1)
-    model.meta['train_s'] = round(time.perf_counter() - t0 - t_data, 1)
+    x, y = d['train']
+    model = train_faults(x, y, s)
+    t_train = time.perf_counter() - t0 - t_data
+    env = _envelope(s)
+    model.meta.update(
+        inputs=f'preflight_features ({x.shape[1] - 3}) + measured conditions '
+               f'(mean of {CONDITION_READINGS} bench readings)',
+        conditions=['supply_pressure_pa', 'return_pressure_pa', 'fluid_temperature_k'],
+        condition_readings=CONDITION_READINGS, settings=s,
+        sizes={k: int(len(v[0])) for k, v in d.items()},
+        streams={k: s[f'seed_{k}'] for k in ('train', 'val', 'cal', 'ood')},
+        ranges=env['faults'], **{k: v for k, v in env.items() if k != 'faults'})
+    recalibrate(model, {'val': d['val'], 'cal': d['cal']})
+    fit_ood(model, x, envelope_targets(sets['train']), d['val'][0],
+            envelope_targets(sets['val']), d['ood'][0], s)
+    model.meta['held_out'] = {k: _figures(model, *d[k]) for k in ('val', 'cal', 'ood')}
+    model.meta['held_out']['ood']['note'] = 'the OOD-limit stream: calibration never saw it'
+    model.meta['data_s'] = round(t_data, 1)   # running the sweeps, or reading them (--data)
+    model.meta['checks_worker_s'] = round(stats.get('worker_s', 0.0), 1)
+    model.meta['train_s'] = round(t_train, 1)
     model.meta['fluid_hash'] = fluid_hash(p)
     out = Path(out) if out is not None else models_dir('health') / FAULTS_FILE
     save_artefact(out, model.data(), model.meta)
-    progress(f'{out}: validation error % of range '
-             f'{model.meta["validation_mean_abs_error_pct"]}, within 2 sigma '
-             f'{model.meta["validation_within_2sigma"]}')
+    progress(f'{out}: held-out (ood stream) error % of range '
+             f'{model.meta["held_out"]["ood"]["mean_abs_error_pct"]}, within 2 sigma '
+             f'{model.meta["held_out"]["ood"]["within_2sigma"]}, OOD limit '
+             f'{model.ood.limit:.3g}')
     return model
 
 
@@ -286,8 +513,10 @@ def main(argv=None) -> int:
                                  description='pre-flight data and fault network')
     ap.add_argument('--workers', type=int, default=2, help='sweep workers (1: in process)')
     ap.add_argument('--data', type=Path, default=None,
-                    help='keep the data sweep here (resumed if it holds some of it)')
+                    help='keep the data sweeps here (resumed if they hold some of it)')
     args = ap.parse_args(argv)
+    if args.workers < 1:
+        ap.error(f'--workers {args.workers} must be at least 1')
     build_artefact(workers=args.workers, data=args.data)
     return 0
 

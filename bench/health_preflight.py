@@ -1,0 +1,177 @@
+"""The pre-flight fault network under drift: accuracy, coverage, false alarms and refusals.
+
+Every case runs the high-fidelity plant's pre-flight check as one sweep
+(:class:`eha_ros.sweep.procedures.PreflightProcedure`: the network's estimates with the
+conditions the bench measures, its OOD score and mismatch flag), on streams used neither for
+training nor calibration nor the OOD limit (:mod:`eha_ros.training.preflight`: 21-24):
+
+``clean`` (stream 41)
+    Faults drawn as for training (half every fault uniform, half sparse), every other
+    parameter nominal, nominal conditions: per fault the mean absolute error in % of range.
+``drifted`` (stream 42)
+    The same faults with every nuisance of ``config/test_bench.yaml`` and the clearance and
+    overlap uniform over their ranges, and the true conditions uniform over the service
+    envelope less each sensor's calibration error and three noise deviations (measured, they
+    lie in the envelope; :func:`eha_ros.training.preflight.inner_service`): per fault the
+    mean absolute error in % of range, the fraction within 2 sigma, and the fraction flagged
+    as mismatch.
+``nominal`` (stream 43)
+    Nominal valves (all five faults nominal) with drift as ``drifted``, own noise seeds: false
+    alarms (a fault graded above OK by :func:`eha_ros.health.thresholds.classify_fault`, or a
+    mismatch flag).
+``beyond`` (stream 44)
+    Drifted cases with one entry of the bench's ``beyond`` section applied (a factor on the
+    nominal value, or a value; temperatures through the fluid law): the fraction flagged as
+    mismatch, per entry too, and ``silent_misses``: fault items not flagged whose 2-sigma
+    interval excludes the truth.
+
+    PYTHONPATH=. python bench/health_preflight.py [--workers 2]
+"""
+
+import argparse
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from eha_ros.health.preflight import FAULTS, FAULT_NAMES, load_faults
+from eha_ros.health.thresholds import OK, HealthThresholds, classify_fault
+from eha_ros.physics import default_params, params_to_dict
+from eha_ros.physics.bench import fluid_at, load_bench
+from eha_ros.training.preflight import cases, draw_drift, wear_changes
+
+STREAM_CLEAN, STREAM_DRIFTED, STREAM_NOMINAL, STREAM_BEYOND = 41, 42, 43, 44
+SIZES = {'clean': 100, 'drifted': 240, 'nominal': 24, 'beyond_per_entry': 8}
+
+
+def beyond_entries(bench=None) -> list:
+    """``(label, plant changes)`` of every value of the bench's ``beyond`` section."""
+    b = bench or load_bench()
+    p = default_params()
+    out = []
+    for name, e in b.beyond.items():
+        values = ([f * getattr(p, name) for f in e['factors']] if 'factors' in e
+                  else [float(v) for v in e['values']])
+        for v in values:
+            changes = fluid_at(v, b) if name == 'fluid_temperature_k' else {name: v}
+            out.append((f'{name}={v:.4g}', changes))
+    return out
+
+
+def bench_cases() -> dict:
+    """``{set: [(label, plant changes, seed)]}`` of the four sets."""
+    b, p = load_bench(), default_params()
+    clean = cases(SIZES['clean'], STREAM_CLEAN, drift=False)
+    drifted = cases(SIZES['drifted'], STREAM_DRIFTED, inner=True)
+    out = {'clean': [('clean', w, s) for w, s in clean],
+           'drifted': [('drifted', w, s) for w, s in drifted],
+           'nominal': [], 'beyond': []}
+    for i in range(SIZES['nominal']):
+        rng = np.random.default_rng([STREAM_NOMINAL, i])
+        wear = {f.name: f.nominal for f in FAULTS}
+        wear.update(draw_drift(rng, b, p, inner=True))
+        out['nominal'].append(('nominal', wear, int(rng.integers(0, 2 ** 31 - 1))))
+    entries = beyond_entries(b)
+    drifted = cases(SIZES['beyond_per_entry'] * len(entries), STREAM_BEYOND, inner=True)
+    for k, (wear, seed) in enumerate(drifted):
+        label, changes = entries[k % len(entries)]
+        out['beyond'].append((label, {**wear, **changes}, seed))
+    return out
+
+
+def _run(all_cases: list, workers: int) -> list:
+    """The network's metrics of every ``(label, changes, seed)``, in order."""
+    from eha_ros.sweep import SweepError, parse_spec, read_dataset, run_sweep
+    metrics = ([f'est_{n}' for n in FAULT_NAMES] + [f'std_{n}' for n in FAULT_NAMES]
+               + ['ood_score', 'mismatch'])
+    raw = {'procedure': 'preflight_check', 'models': ['hf'], 'noise': True,
+           'metrics': metrics,
+           'cases': [{**wear_changes(w), 'seed': int(s)} for _, w, s in all_cases]}
+    spec = parse_spec(raw, source='pre-flight drift bench',
+                      base=params_to_dict(default_params()))
+    ids = [pt.cases[0].case_id for pt in spec.points()]
+    with tempfile.TemporaryDirectory(prefix='eha-preflight-bench-') as tmp:
+        run_sweep(spec, Path(tmp) / 'sweep', workers=workers, in_process=workers <= 1,
+                  progress=False)
+        rows = {r['case_id']: r for r in read_dataset(Path(tmp) / 'sweep').to_pylist()}
+    bad = [rows[i] for i in ids if rows[i]['status'] != 'ok']
+    if bad:
+        raise SweepError(f'pre-flight drift bench: {len(bad)} cases did not run, first: '
+                         f'{bad[0]["error"]}')
+    return [rows[i] for i in ids]
+
+
+def _errors(rows, wears):
+    span = np.array([f.span for f in FAULTS])
+    est = np.array([[r[f'est_{n}'] for n in FAULT_NAMES] for r in rows])
+    std = np.array([[r[f'std_{n}'] for n in FAULT_NAMES] for r in rows])
+    truth = np.array([[w[n] for n in FAULT_NAMES] for w in wears])
+    return np.abs(est - truth), std, span
+
+
+def _per_fault(a, digits=3) -> dict:
+    return dict(zip(FAULT_NAMES, np.round(a, digits).tolist()))
+
+
+def preflight_drift(workers: int = 2) -> dict:
+    """The figures of the module's four sets (one sweep on ``workers`` processes)."""
+    t0 = time.perf_counter()
+    sets = bench_cases()
+    flat = [c for name in ('clean', 'drifted', 'nominal', 'beyond') for c in sets[name]]
+    rows = _run(flat, workers)
+    by_set, k = {}, 0
+    for name in ('clean', 'drifted', 'nominal', 'beyond'):
+        by_set[name] = list(zip(sets[name], rows[k:k + len(sets[name])]))
+        k += len(sets[name])
+    out = {'network': {kk: load_faults().meta.get(kk) for kk in ('sizes', 'streams')}}
+    for name in ('clean', 'drifted'):
+        pairs = by_set[name]
+        err, std, span = _errors([r for _, r in pairs], [w for (_, w, _), _ in pairs])
+        out[name] = {'cases': len(pairs),
+                     'mean_abs_error_pct': _per_fault(100 * err.mean(axis=0) / span),
+                     'within_2sigma': _per_fault(np.mean(err <= 2 * std, axis=0)),
+                     'mismatch_rate': round(float(np.mean([r['mismatch'] for _, r in pairs])),
+                                            3)}
+    limits = HealthThresholds.load()
+    alarms = []
+    for (_, w, seed), r in by_set['nominal']:
+        raised = [n for n in FAULT_NAMES
+                  if classify_fault(n, r[f'est_{n}'], r[f'std_{n}'], limits)[0] != OK]
+        if raised or r['mismatch']:
+            alarms.append({'seed': seed, 'faults': raised, 'mismatch': bool(r['mismatch']),
+                           'ood_score': round(r['ood_score'], 3)})
+    scores = [r['ood_score'] for _, r in by_set['nominal']]
+    out['nominal'] = {'valves': len(by_set['nominal']), 'false_alarms': len(alarms),
+                      'alarms': alarms, 'ood_score_max': round(float(np.max(scores)), 3)}
+    per_entry, silent = {}, 0
+    for (label, w, _), r in by_set['beyond']:
+        per_entry.setdefault(label, []).append(bool(r['mismatch']))
+        if not r['mismatch']:
+            err, std, _ = _errors([r], [w])
+            silent += int(np.sum(err > 2 * std))
+    hits = [h for v in per_entry.values() for h in v]
+    out['beyond'] = {'cases': len(hits), 'mismatch_hit_rate': round(float(np.mean(hits)), 3),
+                     'per_entry': {k: round(float(np.mean(v)), 3) for k, v in per_entry.items()},
+                     'silent_misses': silent}
+    out['ood_limit'] = load_faults().ood.limit
+    out['wall_s'] = round(time.perf_counter() - t0, 1)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description='pre-flight fault network under drift')
+    ap.add_argument('--workers', type=int, default=2, help='sweep workers (1: in process)')
+    args = ap.parse_args(argv)
+    if args.workers < 1:
+        ap.error(f'--workers {args.workers} must be at least 1')
+    out = preflight_drift(args.workers)
+    out['loadavg'] = [round(v, 2) for v in os.getloadavg()]
+    print(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
