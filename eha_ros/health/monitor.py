@@ -281,24 +281,28 @@ class MonitorCore:
             self.procedure = 'settled' if int(getattr(s, 'valve_test_procedure', 0)) else \
                 'reference'
         self._read_conditions(s)
-        if self.procedure == 'settled':   # the settle check's sample, SETTLE_CHECK_S early
-            from eha_ros.health.valve_fit import SETTLE_CHECK_S
+        reading = float(s.p12_pa)
+        if self.procedure == 'settled':   # the mean of the hold's last READING_S, and before
+            from eha_ros.health.valve_fit import READING_S, window_mean
             key = (float(s.load_flow_m3_s), int(s.valve_test_point))
             if key != self._point:
                 self._point, self._before = key, math.nan
                 self._trace.clear()
             self._trace.append((float(s.sim_time_s), float(s.p12_pa)))
             if s.valve_test_point_end:
-                target = float(s.sim_time_s) - SETTLE_CHECK_S
-                self._before = next((p for t, p in self._trace if abs(t - target) < 1e-7),
-                                    math.nan)
+                t_end = float(s.sim_time_s)
+                last = [p for t, p in self._trace if t > t_end - READING_S + 1e-7]
+                before = [p for t, p in self._trace
+                          if t_end - 2 * READING_S + 1e-7 < t <= t_end - READING_S + 1e-7]
+                reading = window_mean(last)
+                self._before = window_mean(before)
         if not s.valve_test_point_end:
             return []
         n_points = (valve_test_schedule('settled')['n_points'] if self.procedure == 'settled'
                     else MAP_POINTS)
         q = float(s.load_flow_m3_s)
         curve = self.curves.setdefault(q, {})
-        curve[int(s.valve_test_point)] = (float(s.spool_position_m), float(s.p12_pa),
+        curve[int(s.valve_test_point)] = (float(s.spool_position_m), reading,
                                           self._before if self.procedure == 'settled'
                                           else math.nan)
         if int(s.valve_test_point) != n_points - 1:

@@ -16,8 +16,9 @@ Fit
     points whose measured |P12| lies below 95 % of the measured supply-return difference (a
     blocked chamber at a flow is beyond what a bench's relief lets through), weights
     ``1 / (0.01 |P12| + 20 kPa)``: in units of a 1 % measurement noise.  Starts: the best
-    of a 4 x 4 grid of clearance and overlap, refined from the two best.  Points that had not
-    settled (their P12 still moving over the last tenth of the hold) are left out.
+    of a 4 x 4 grid of clearance and overlap, refined from the two best.  A point's reading
+    is the mean of its P12 samples over the last tenth of its hold; points that had not
+    settled (that mean differs from the previous tenth's) are left out.
 
 Uncertainty
     The fit's covariance (scaled by its own residual where that exceeds the weights' noise),
@@ -37,6 +38,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from pathlib import Path
 
 import numpy as np
@@ -62,11 +64,22 @@ KHSV_RANGE = (0.0, 0.6)
 _NOISE_REL = 0.01
 _NOISE_FLOOR_PA = 2e4
 _BAND = 1.05
-#: A point counts as settled when its P12 moved by at most this fraction of itself plus
-#: ``SETTLED_ABS_PA`` over the last tenth of its hold (``SETTLE_CHECK_S`` before the end).
+#: A point's reading is the mean of its P12 samples over the last ``READING_S`` of its hold
+#: (:func:`window_mean`); it counts as settled when that reading differs from the mean over
+#: the ``READING_S`` before by at most ``SETTLED_REL`` of itself plus ``SETTLED_ABS_PA``
+#: (plus the measurement noise the pairs show).
+READING_S = 0.01
 SETTLED_REL = 0.002
 SETTLED_ABS_PA = 2e3
-SETTLE_CHECK_S = 0.01
+
+
+def window_mean(samples) -> float:
+    """The mean of a window's samples, exactly rounded (``math.fsum``): the same number
+    whatever their order, live or from a sweep."""
+    samples = [float(x) for x in samples]
+    return math.fsum(samples) / len(samples) if samples else math.nan
+
+
 _SUPPLY_UNIT_PA = 1e4
 # fit variables: clearance [um], overlap [um], Khsv, jack leakage [1e-13 m^3/(s Pa)],
 # supply pressure less its reading [10 kPa]
@@ -227,9 +240,10 @@ class ValveFitEstimator:
         return np.array([self.bench.sensors[k].bias / np.sqrt(3.0) for k in CONDITIONS])
 
     def estimate(self, curves, conditions: Conditions | None) -> HealthEstimate:
-        """``curves``: ``(q_m3_s, xs_m, p12_pa[, p12_before_pa])`` per flow, with P12 at the
-        end of each hold and, where known, ``SETTLE_CHECK_S`` before it (unsettled points
-        are left out); ``conditions``: the measured test conditions (``None``: nominal
+        """``curves``: ``(q_m3_s, xs_m, p12_pa[, p12_before_pa])`` per flow: each point's
+        reading (for the settled test the mean over the last ``READING_S`` of the hold) and,
+        where known, the mean over the ``READING_S`` before (unsettled points are left
+        out); ``conditions``: the measured test conditions (``None``: nominal
         assumed, said so, deviations widened)."""
         curves = [(float(c[0]), np.asarray(c[1], dtype=float), np.asarray(c[2], dtype=float),
                    None if len(c) < 4 or c[3] is None else np.asarray(c[3], dtype=float))

@@ -166,25 +166,30 @@ def transient_map(xs_m, q_m3_s, overlap_m=None, clearance_m=None, params=None,
                      p12_pa=(p1 - p2).reshape(shape))
 
 
-def transient_trace(xs_m: float, q_m3_s: float, n_ticks: int, steps_per_tick: int,
-                    params=None, dt_s: float = 1e-6) -> tuple:
-    """``(p1_pa, p2_pa)`` arrays ``(n_ticks,)`` of one point's map transient at the end of
-    every tick of ``steps_per_tick`` steps: element ``m`` equals :func:`transient_map` with
-    ``t_end_s = (m + 1) steps_per_tick dt_s`` bit for bit, at the cost of one transient."""
+def transient_trace(xs_m, q_m3_s, n_ticks: int, steps_per_tick: int, params=None,
+                    dt_s: float = 1e-6, first: int = 0) -> tuple:
+    """``(p1_pa, p2_pa)`` of the map transient at the end of ticks ``first .. n_ticks - 1``
+    of ``steps_per_tick`` steps each, arrays ``(n_ticks - first,) + shape`` for broadcastable
+    ``xs_m`` and ``q_m3_s``: row ``m - first`` equals :func:`transient_map` with
+    ``t_end_s = (m + 1) steps_per_tick dt_s`` bit for bit (the first ``first`` ticks run as
+    one chunk), at the cost of one transient."""
     p = params if params is not None else default_params()
-    _, (xs, q, lap, clr) = _broadcast(xs_m, q_m3_s, None, None, p)
+    shape, (xs, q, lap, clr) = _broadcast(xs_m, q_m3_s, None, None, p)
     consts = _consts(p)
-    raw1, raw2 = np.zeros(1), np.zeros(1)
-    o1, o2 = np.empty(1), np.empty(1)
-    p1, p2 = np.empty(n_ticks), np.empty(n_ticks)
-    for m in range(n_ticks):
+    n = xs.size
+    raw1, raw2 = np.zeros(n), np.zeros(n)
+    o1, o2 = np.empty(n), np.empty(n)
+    p1, p2 = np.empty((n_ticks - first, n)), np.empty((n_ticks - first, n))
+    if first:
+        _transient_kernel(xs, q, lap, lap, clr, consts, int(steps_per_tick) * int(first),
+                          float(dt_s), o1, o2, raw1, raw2)
+    for m in range(n_ticks - first):
         _transient_kernel(xs, q, lap, lap, clr, consts, int(steps_per_tick), float(dt_s), o1,
                           o2, raw1, raw2)
-        p1[m], p2[m] = o1[0], o2[0]
+        p1[m], p2[m] = o1, o2
     if not (np.all(np.isfinite(p1)) and np.all(np.isfinite(p2))):
-        raise FloatingPointError(f'map transient diverged at xs={xs_m:g} m, q={q_m3_s:g} '
-                                 'm^3/s: reduce dt_s')
-    return p1, p2
+        raise FloatingPointError('map transient diverged: reduce dt_s')
+    return (p1.reshape((n_ticks - first,) + shape), p2.reshape((n_ticks - first,) + shape))
 
 
 @njit(cache=True, parallel=True)

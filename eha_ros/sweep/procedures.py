@@ -477,11 +477,11 @@ class ValveTestProcedure(Procedure):
         return self.schedule()['flows_m3_s']
 
     def run_point(self, point) -> list:
-        from eha_ros.health.valve_fit import SETTLE_CHECK_S, ValveFitEstimator
+        from eha_ros.health.valve_fit import READING_S, ValveFitEstimator, window_mean
         from eha_ros.health.valve_test import ValveTestEstimator
         from eha_ros.physics import default_params
         from eha_ros.physics.bench import load_bench, mean_conditions, measure_conditions
-        from eha_ros.physics.maps import spool_grid, transient_map
+        from eha_ros.physics.maps import spool_grid, transient_map, transient_trace
         (c,) = point.cases
         t0 = time.perf_counter()
         row = {'case_id': c.case_id, 'model': c.model, 'dt_s': c.dt_s}
@@ -493,16 +493,26 @@ class ValveTestProcedure(Procedure):
             curves = []
             settled = self.spec.valve_test_procedure == 'settled'
             for q in sch['flows_m3_s']:
-                # P12 at the end of the hold and, for the settled test, SETTLE_CHECK_S before
-                ends = (sch['hold_s'] - SETTLE_CHECK_S, sch['hold_s']) if settled else (
-                    sch['hold_s'],)
-                p12 = [np.asarray(transient_map(grid, q, params=p, t_end_s=t,
-                                                dt_s=c.dt_s)['p12_pa'], dtype=float)
-                       for t in ends]
+                if not settled:   # the reference's: P12 at the end of the hold
+                    p12 = np.asarray(transient_map(grid, q, params=p, t_end_s=sch['hold_s'],
+                                                   dt_s=c.dt_s)['p12_pa'], dtype=float)
+                    if self.spec.pressure_noise:
+                        p12 = p12 * (1.0 + self.spec.pressure_noise
+                                     * rng.standard_normal(p12.shape))
+                    curves.append((q, grid, p12))
+                    continue
+                # settled: the plant's 1 ms samples of the hold's last two READING_S windows;
+                # the reading is the last window's mean, the settle check the one before
+                n_hold = int(round(sch['hold_s'] / 1e-3))
+                n_win = int(round(READING_S / 1e-3))
+                p1, p2 = transient_trace(grid, q, n_hold, int(round(1e-3 / c.dt_s)), p,
+                                         c.dt_s, first=n_hold - 2 * n_win)
+                p12 = p1 - p2
                 if self.spec.pressure_noise:
-                    p12 = [v * (1.0 + self.spec.pressure_noise * rng.standard_normal(v.shape))
-                           for v in p12]
-                curves.append((q, grid, p12[-1], p12[0]) if settled else (q, grid, p12[0]))
+                    p12 = p12 * (1.0 + self.spec.pressure_noise * rng.standard_normal(
+                        p12.shape))
+                curves.append((q, grid, np.array([window_mean(v) for v in p12[n_win:].T]),
+                               np.array([window_mean(v) for v in p12[:n_win].T])))
             nominal = replace(default_params(), noise_std_a=0.0)
             # as the plant reports them at 1 kHz: one reading at start, one per test tick
             n_ticks = int(round(sch['hold_s'] * 1e3)) * sch['n_points'] * len(curves)
