@@ -145,7 +145,7 @@ def test_the_example_specs_parse():
     from eha_ros.sweep import load_spec
     files = sorted((config_dir() / 'sweeps').glob('*.yaml'))
     assert [f.stem for f in files] == ['preflight_monte_carlo', 'valve_test_drift',
-                                       'wear_plane']
+                                       'valve_test_settled_drift', 'wear_plane']
     for f in files:
         assert load_spec(f).points()
 
