@@ -375,7 +375,7 @@ class MonitorCore:
         else:
             level, text = classify(est, lim)
         if est.note:
-            text = f'{text} ({est.note}; deviations widened)'
+            text = f'{text} ({est.note})'
         items = _wear_items(est, level, text, lim, t)
         if job.kind == 'valve-test':
             self.have_valve_test = True
@@ -420,7 +420,7 @@ class MonitorCore:
             else:
                 lv, why = classify_fault(f.name, v, sd, self.limits)
             if note:
-                why = f'{why} ({note}; deviations widened)'
+                why = f'{why} ({note})'
             items[f.name] = Item(f.name, v, sd, lv, why, method, t)
         self.items.update(items)
         # the verdict covers every parameter known, the valve test's included

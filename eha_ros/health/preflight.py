@@ -67,7 +67,7 @@ import numpy as np
 from eha_ros.artefacts import ArtefactError, load_artefact, models_dir
 from eha_ros.mlp import flatten_weights, mlp_forward, split_weights
 from eha_ros.physics import default_params
-from eha_ros.physics.bench import CONDITIONS, Conditions
+from eha_ros.physics.bench import CONDITIONS, Conditions, outside_ranges
 
 __all__ = ['Fault', 'FAULTS', 'FAULT_NAMES', 'FaultModel', 'FaultEstimate', 'OodModel',
            'load_faults', 'preflight_features', 'model_inputs', 'FAULTS_FILE',
@@ -271,14 +271,7 @@ class FaultModel:
     def outside_service(self, c: Conditions) -> list:
         """One phrase per measured condition outside the service envelope the network was
         trained over (``meta['service']``)."""
-        out = []
-        for name in CONDITIONS:
-            v = getattr(c, name)
-            lo, hi = self.meta['service'][name]
-            if not lo <= v <= hi:
-                out.append(f'measured {name} = {v:.4g} outside the service range '
-                           f'[{lo:.4g}, {hi:.4g}]')
-        return out
+        return outside_ranges(self.meta['service'], c)
 
     def estimate(self, record: dict, conditions: Conditions) -> FaultEstimate:
         """Estimate from one pre-flight record (see :func:`preflight_features`) and the test

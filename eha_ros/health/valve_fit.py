@@ -46,7 +46,8 @@ import numpy as np
 from eha_ros.artefacts import ArtefactError, load_artefact, models_dir
 from eha_ros.health.thresholds import HealthEstimate
 from eha_ros.physics import PlantParams, default_params
-from eha_ros.physics.bench import CONDITIONS, Conditions, load_bench, with_conditions
+from eha_ros.physics.bench import (CONDITIONS, Conditions, load_bench, true_conditions,
+                                   with_conditions)
 from eha_ros.physics.maps import WEAR_RANGES, steady_map
 from eha_ros.physics.params import ParameterError, replace
 
@@ -252,12 +253,14 @@ class ValveFitEstimator:
             raise ParameterError('no complete valve-test curve')
         notes = []
         if conditions is None:
-            conditions = Conditions(self.params.supply_pressure_pa,
-                                    self.params.return_pressure_pa,
-                                    self.bench.fluid.temperature_k(
-                                        self.params.fluid_kinematic_viscosity_m2_s), True)
+            conditions = dataclasses.replace(true_conditions(self.params, self.bench),
+                                             assumed=True)
         if conditions.assumed:
-            notes.append('test conditions not measured: nominal assumed')
+            notes.append('test conditions not measured: nominal assumed, deviations widened')
+        cal = self.calibration
+        if cal is not None and cal.meta.get('stage') != 'calibrated':
+            notes.append(f'the valve fit is not calibrated (python -m {REBUILD}): deviations '
+                         'unscaled, no residual limit')
         lo, hi = self.bench.service['supply_pressure_pa']
         f = fit_curves(curves, conditions, self.params, self.bench,
                        (hi - lo) / np.sqrt(12.0) if conditions.assumed else None)
@@ -272,7 +275,6 @@ class ValveFitEstimator:
         for j, name in enumerate(CONDITIONS):
             if name in f['sensitivity']:
                 var += (f['sensitivity'][name] * cstd[j]) ** 2
-        cal = self.calibration
         factors = cal.factors if cal is not None else np.ones(len(FIT_NAMES))
         std = np.sqrt(var) * factors * scale
         value = theta * scale

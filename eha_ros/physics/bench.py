@@ -29,10 +29,9 @@ import numpy as np
 
 from .params import ParameterError, PlantParams, config_dir, default_params, read_yaml, replace
 
-__all__ = ['CONDITIONS', 'Conditions', 'ConditionSensors', 'FluidLaw', 'TestBench', 'load_bench',
-           'fluid_at',
-           'temperature_of', 'true_conditions', 'measure_conditions', 'mean_conditions',
-           'with_conditions']
+__all__ = ['CONDITIONS', 'Conditions', 'ConditionSensors', 'outside_ranges', 'FluidLaw',
+           'TestBench', 'load_bench', 'fluid_at', 'temperature_of', 'true_conditions',
+           'measure_conditions', 'mean_conditions', 'with_conditions']
 
 #: The measured test conditions, in order.
 CONDITIONS = ('supply_pressure_pa', 'return_pressure_pa', 'fluid_temperature_k')
@@ -107,14 +106,19 @@ class TestBench:
 
     def outside_service(self, c: Conditions) -> list:
         """One phrase per measured condition outside the service envelope."""
-        out = []
-        for name in CONDITIONS:
-            v = getattr(c, name)
-            lo, hi = self.service[name]
-            if not lo <= v <= hi:
-                out.append(f'measured {name} = {v:.4g} outside the service range '
-                           f'[{lo:.4g}, {hi:.4g}]')
-        return out
+        return outside_ranges(self.service, c)
+
+
+def outside_ranges(service: dict, c: Conditions) -> list:
+    """One phrase per condition of ``c`` outside ``service`` (``name -> (lo, hi)``)."""
+    out = []
+    for name in CONDITIONS:
+        v = getattr(c, name)
+        lo, hi = service[name]
+        if not lo <= v <= hi:
+            out.append(f'measured {name} = {v:.4g} outside the service range '
+                       f'[{lo:.4g}, {hi:.4g}]')
+    return out
 
 
 def _num(doc, key, where):
@@ -158,6 +162,10 @@ def _load(path: str, p: PlantParams) -> TestBench:
             s = doc['sensors'][name]
             sensors[name] = Sensor(float(s['noise_std']), float(s['resolution']),
                                    float(s['bias']), str(s.get('unit', '')))
+            if not (sensors[name].resolution > 0 and sensors[name].noise_std >= 0
+                    and sensors[name].bias >= 0):
+                raise ParameterError(f'{path}: sensors: {name} needs a positive resolution '
+                                     'and non-negative noise_std and bias')
             e = doc['service'][name]
             service[name] = (float(e['lo']), float(e['hi']))
             reasons[f'service.{name}'] = str(e.get('reason', ''))
@@ -205,10 +213,6 @@ def true_conditions(params: PlantParams, bench: TestBench | None = None) -> Cond
                       temperature_of(params, bench))
 
 
-def _quantise(x, step):
-    return np.round(np.asarray(x, dtype=float) / step) * step if step > 0 else x
-
-
 class ConditionSensors:
     """The bench's transducers of :data:`CONDITIONS` for one test: a calibration error drawn
     once from ``seed`` (uniform within each sensor's bias), then at every :meth:`read` the
@@ -221,13 +225,17 @@ class ConditionSensors:
         sens = [self.bench.sensors[k] for k in CONDITIONS]
         self._bias = np.array([self._rng.uniform(-s.bias, s.bias) for s in sens])
         self._noise = np.array([s.noise_std for s in sens])
-        self._step = [s.resolution for s in sens]
+        self._step = np.array([s.resolution for s in sens])
+        self._params = self._offset = None
 
     def read(self, params: PlantParams, n: int = 1) -> np.ndarray:
-        """``(n, 3)`` readings of the conditions of ``params``."""
-        truth = true_conditions(params, self.bench).array()
-        out = truth + self._bias + self._rng.standard_normal((n, 3)) * self._noise
-        return np.stack([_quantise(out[:, j], self._step[j]) for j in range(3)], axis=1)
+        """``(n, 3)`` readings of the conditions of ``params`` (the plant calls it every
+        tick: the true values plus bias are kept while ``params`` is the same object)."""
+        if params is not self._params:
+            self._params = params
+            self._offset = true_conditions(params, self.bench).array() + self._bias
+        out = self._offset + self._rng.standard_normal((n, 3)) * self._noise
+        return np.round(out / self._step) * self._step
 
 
 def measure_conditions(params: PlantParams, seed: int, n: int = 1,

@@ -157,12 +157,13 @@ class ValveTest:
         xs = float(self.grid(params)[point])
         q = float(self.flows_m3_s[curve])
         # the point's whole transient once, at its first tick or when the parameters change
-        key = (point_global, params)
-        if self._trace_key != key:
+        # (another object: the plant replaces its parameters on every change)
+        if self._trace_key is None or self._trace_key[0] != point_global or \
+                self._trace_key[1] is not params:
             steps = int(round(self.tick_ns * 1e-9 / self.dt_s))
             self._trace = transient_trace(xs, q, self.ticks_per_point, steps, params,
                                           self.dt_s)
-            self._trace_key = key
+            self._trace_key = (point_global, params)
         p1 = float(self._trace[0][m])
         p2 = float(self._trace[1][m])
         if not (math.isfinite(p1) and math.isfinite(p2)):  # transient_map raises first
