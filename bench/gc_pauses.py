@@ -23,7 +23,10 @@ the period, the wake-up lateness against the deadline, and the tracked heap size
 ``os.getloadavg()`` before and after the whole run.
 
     python bench/gc_pauses.py [--seconds 10] [--rate 1000] [--warmup 1] [--keep 0|N|-1] [--rt]
-        [--conditions default,settled,disabled]
+        [--conditions default,settled,disabled] [--smoke]
+
+``--smoke``: every condition for 0.3 s after 0.1 s of warm-up (a check that the bench runs, no
+figure).
 
 ``--rt`` applies :data:`eha_ros.realtime.RT_DEFAULTS` (SCHED_FIFO 40 on every thread, memory
 locked) in each child before the loop.
@@ -163,7 +166,11 @@ def main():
     ap.add_argument('--rt', action='store_true')
     ap.add_argument('--conditions', default=','.join(CONDITIONS))
     ap.add_argument('--condition', help=argparse.SUPPRESS)  # child
+    ap.add_argument('--smoke', action='store_true',
+                    help='every condition for 0.3 s: a check, no figure')
     args = ap.parse_args()
+    if args.smoke:
+        args.seconds, args.warmup = 0.3, 0.1
     if args.condition:
         print(json.dumps(child(args)))
         return
@@ -171,7 +178,7 @@ def main():
     unknown = set(conditions) - set(CONDITIONS)
     if unknown:
         ap.error(f'unknown conditions {sorted(unknown)}; known: {", ".join(CONDITIONS)}')
-    out = {'benchmark': 'gc_pauses', 'python': platform.python_version(),
+    out = {'benchmark': 'gc_pauses', 'smoke': args.smoke, 'python': platform.python_version(),
            'cpus': os.cpu_count(), 'seconds': args.seconds, 'rate_hz': args.rate,
            'warmup_s': args.warmup, 'keep': args.keep, 'rt': args.rt,
            'loadavg_before': [round(x, 2) for x in os.getloadavg()], 'conditions': {}}

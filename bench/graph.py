@@ -22,7 +22,11 @@ realtime runs and stops them after: what a rig PC's other work does to the graph
 
     python bench/graph.py [--realtime-s 10] [--lockstep-s 1.0] [--models hf,lut,ga,nn]
                           [--layouts processes,one-process] [--rt off|on|both] [--load N]
-                          [--health] [--record]
+                          [--health] [--record] [--smoke]
+
+``--smoke``: one realtime case of 0.5 s per real-time setting (one process) and 50 ms of
+lockstep per model of ``--models`` (default hf, lut; processes): a check, no figure.  A case
+that fails is reported as ``{"error": ...}`` in the JSON, and the run exits 1.
 """
 
 import argparse
@@ -223,14 +227,20 @@ def main():
     ap.add_argument('--rt', choices=('off', 'on', 'both'), default='both',
                     help='realtime runs without and/or with the real-time settings (--rt)')
     ap.add_argument('--case', help=argparse.SUPPRESS)
+    ap.add_argument('--smoke', action='store_true', help='tiny cases: a check, no figure')
     args = ap.parse_args()
+    if args.smoke and not args.case:
+        args.realtime_s, args.lockstep_s, args.layouts = 0.5, 0.05, 'one-process'
+        if args.models == ap.get_default('models'):
+            args.models = 'hf,lut'
     if args.case:  # one realtime measurement (a child of the run below)
         layout, rt = args.case.split(':')
         print(json.dumps(realtime(args.realtime_s, layout == 'processes', args.health,
                                   args.record, rt == '1')))
         return
     models = args.models.split(',')
-    out = {'benchmark': 'graph', 'load_processes': args.load, 'realtime_s': args.realtime_s}
+    out = {'benchmark': 'graph', 'smoke': args.smoke,
+           'load_processes': args.load, 'realtime_s': args.realtime_s}
     rts = {'off': [False], 'on': [True], 'both': [False, True]}[args.rt]
     layouts = args.layouts.split(',')
     if args.realtime_s > 0:
@@ -244,6 +254,9 @@ def main():
             out['lockstep_' + layout.replace('-', '_')] = lockstep(models, args.lockstep_s,
                                                                    layout == 'processes')
     print(json.dumps(out))
+    failed = [k for k, v in out.items() if isinstance(v, dict) and 'error' in v]
+    if failed:
+        sys.exit(f'graph: {len(failed)} case(s) failed: {", ".join(failed)}')
 
 
 if __name__ == '__main__':

@@ -31,7 +31,11 @@ Prints one JSON object:
     estimates published against those scheduled (one every ``update_period_s`` of received
     state time).
 
-    python bench/health.py [--realtime-s 20] [--quick] [--no-drift] [--workers 2]
+    python bench/health.py [--realtime-s 20] [--quick] [--no-drift] [--workers 2] [--smoke]
+
+``--quick`` runs fewer cases; ``--smoke`` the fewest that pass through every section
+(:data:`SIZES`; the drifted sets in process, 1 s realtime): a check that the bench runs, no
+figure.
 """
 
 import argparse
@@ -60,8 +64,17 @@ FIVE = FAULTS[:5]
 #: Streams of the benchmark's cases (the network's data used 21-24).
 STREAM_COMBOS, STREAM_SINGLE, STREAM_NOMINAL, STREAM_VALVES = 101, 102, 103, 104
 
+#: Cases per section and size: random valves of the valve test, pre-flight combinations,
+#: single-fault rounds, nominal runs, in-service valves, scenarios and seeds.
+SIZES = {'full': {'valves': 12, 'combinations': 80, 'single_rounds': 8, 'nominal': 20,
+                  'in_service_valves': None, 'scenarios': None, 'seeds': (1, 2, 3)},
+         'quick': {'valves': 4, 'combinations': 20, 'single_rounds': 3, 'nominal': 20,
+                   'in_service_valves': None, 'scenarios': None, 'seeds': (1,)},
+         'smoke': {'valves': 1, 'combinations': 2, 'single_rounds': 1, 'nominal': 2,
+                   'in_service_valves': 2, 'scenarios': 1, 'seeds': (1,)}}
 
-def bench_valve_test(p0, quick):
+
+def bench_valve_test(p0, size):
     net = ValveTestEstimator(p0)
     flows = get_scenario('valve_test').valve_test_flows_m3_s
     xs = spool_grid(133, p0.spool_stroke_m)
@@ -70,7 +83,7 @@ def bench_valve_test(p0, quick):
     valves = list(VALVES.values()) + [
         (rng.uniform(c0 + 0.05 * (c1 - c0), c1 - 0.05 * (c1 - c0)),
          rng.uniform(l0 + 0.05 * (l1 - l0), l1 - 0.05 * (l1 - l0)))
-        for _ in range(4 if quick else 12)]
+        for _ in range(size['valves'])]
     rows = {'clean': [], 'noise_1pct': []}
     for clr, lap in valves:
         p = replace(p0, radial_clearance_m=clr, overlap_supply_m=lap, overlap_return_m=lap)
@@ -110,13 +123,13 @@ def _estimate(model, params, seed):
     return model.estimate(run_preflight(params, seed=seed), cond)
 
 
-def bench_preflight(p0, lim, quick):
+def bench_preflight(p0, lim, size):
     model = load_faults()
     nominal = {f.name: f.nominal for f in FAULTS}
     out = {}
     # 2-3 simultaneous faults (the others nominal, clearance and overlap random)
     errs, inside = [], []
-    for wear, seed in combination_cases(20 if quick else 80, STREAM_COMBOS, drift=False):
+    for wear, seed in combination_cases(size['combinations'], STREAM_COMBOS, drift=False):
         est = _estimate(model, apply_wear(p0, wear), seed)
         errs.append([abs(est.values[f.name] - wear[f.name]) / f.span for f in FIVE])
         inside.append([abs(est.values[f.name] - wear[f.name]) <= 2 * est.stds[f.name]
@@ -133,7 +146,7 @@ def bench_preflight(p0, lim, quick):
     rng = np.random.default_rng(STREAM_SINGLE)
     confusion = {f.name: {} for f in FIVE}
     correct, n = 0, 0
-    for rep in range(3 if quick else 8):
+    for rep in range(size['single_rounds']):
         for f in FIVE:
             fl = lim.fault(f.name)
             wear = dict(nominal)
@@ -156,7 +169,7 @@ def bench_preflight(p0, lim, quick):
     # nominal seeds: false alarms
     rng = np.random.default_rng(STREAM_NOMINAL)
     alarms = []
-    n_nom = 20
+    n_nom = size['nominal']
     for k in range(n_nom):
         est = _estimate(model, p0, int(rng.integers(1e9)))
         flagged = [g.name for g in FIVE if classify_fault(
@@ -170,13 +183,13 @@ def bench_preflight(p0, lim, quick):
     return out
 
 
-def bench_in_service(p0, lim, quick):
+def bench_in_service(p0, lim, size):
     est = InServiceEstimator(p0, limits=lim)
     rows = []
-    seeds = (1,) if quick else (1, 2, 3)
-    for valve, (clr, lap) in VALVES.items():
+    seeds = size['seeds']
+    for valve, (clr, lap) in list(VALVES.items())[:size['in_service_valves']]:
         p = replace(p0, radial_clearance_m=clr, overlap_supply_m=lap, overlap_return_m=lap)
-        for sc in SCENARIOS:
+        for sc in SCENARIOS[:size['scenarios']]:
             for seed in seeds:
                 r = simulate(p, sc, controller_period_s=1e-3, record_dt_s=1e-3, seed=seed)
                 t = r['time_s']
@@ -240,26 +253,33 @@ def bench_realtime(seconds):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument('--realtime-s', type=float, default=20.0)
-    ap.add_argument('--quick', action='store_true', help='fewer cases (a smoke run)')
+    ap.add_argument('--quick', action='store_true', help='fewer cases')
+    ap.add_argument('--smoke', action='store_true',
+                    help='the fewest cases through every section: a check, no figure')
     ap.add_argument('--no-drift', action='store_true', help='skip the drifted sets')
-    ap.add_argument('--workers', type=int, default=2, help='sweep workers of the drifted sets')
+    ap.add_argument('--workers', type=int, default=None,
+                    help='sweep workers of the drifted sets (default 2, with --smoke 1)')
     args = ap.parse_args()
+    size_name = 'smoke' if args.smoke else 'quick' if args.quick else 'full'
+    size = SIZES[size_name]
+    if args.workers is None:
+        args.workers = 1 if args.smoke else 2
+    if args.smoke and args.realtime_s == ap.get_default('realtime_s'):
+        args.realtime_s = 1.0
     p0 = default_params()
     lim = HealthThresholds.load()
     t0 = time.perf_counter()
-    out = {'benchmark': 'health', 'load_before': [round(x, 2) for x in os.getloadavg()]}
+    out = {'benchmark': 'health', 'smoke': args.smoke, 'size': size_name,
+           'load_before': [round(x, 2) for x in os.getloadavg()]}
     if not args.no_drift:
         from health_valve import valve_drift
-        out['valve_test_drift'] = valve_drift(args.workers, args.quick)
-        try:
-            from health_preflight import preflight_drift
-        except ImportError:
-            out['preflight_drift'] = 'bench/health_preflight.py not present'
-        else:
-            out['preflight_drift'] = preflight_drift(workers=args.workers)
-    out['valve_test'] = bench_valve_test(p0, args.quick)
-    out['preflight'] = bench_preflight(p0, lim, args.quick)
-    out['in_service'] = bench_in_service(p0, lim, args.quick)
+        from health_preflight import SIZES as PREFLIGHT_SIZES, SMOKE_SIZES, preflight_drift
+        out['valve_test_drift'] = valve_drift(args.workers, size_name)
+        out['preflight_drift'] = preflight_drift(
+            workers=args.workers, sizes=SMOKE_SIZES if args.smoke else PREFLIGHT_SIZES)
+    out['valve_test'] = bench_valve_test(p0, size)
+    out['preflight'] = bench_preflight(p0, lim, size)
+    out['in_service'] = bench_in_service(p0, lim, size)
     if args.realtime_s > 0:
         out['realtime'] = bench_realtime(args.realtime_s)
     out['load_after'] = [round(x, 2) for x in os.getloadavg()]

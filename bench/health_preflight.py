@@ -25,7 +25,9 @@ training nor calibration nor the OOD limit (:mod:`eha_ros.training.preflight`: 2
     mismatch, per entry too, and ``silent_misses``: fault items not flagged whose 2-sigma
     interval excludes the truth.
 
-    PYTHONPATH=. python bench/health_preflight.py [--workers 2]
+    PYTHONPATH=. python bench/health_preflight.py [--workers 2] [--smoke]
+
+``--smoke``: one or two cases per set (:data:`SMOKE_SIZES`), in process: a check, no figure.
 """
 
 import argparse
@@ -45,6 +47,7 @@ from eha_ros.training.preflight import cases, draw_drift, wear_changes
 
 STREAM_CLEAN, STREAM_DRIFTED, STREAM_NOMINAL, STREAM_BEYOND = 41, 42, 43, 44
 SIZES = {'clean': 100, 'drifted': 240, 'nominal': 24, 'beyond_per_entry': 8}
+SMOKE_SIZES = {'clean': 2, 'drifted': 2, 'nominal': 1, 'beyond_per_entry': 1}
 
 
 def beyond_entries(bench=None) -> list:
@@ -61,21 +64,21 @@ def beyond_entries(bench=None) -> list:
     return out
 
 
-def bench_cases() -> dict:
-    """``{set: [(label, plant changes, seed)]}`` of the four sets."""
+def bench_cases(sizes: dict = SIZES) -> dict:
+    """``{set: [(label, plant changes, seed)]}`` of the four sets, of ``sizes``."""
     b, p = load_bench(), default_params()
-    clean = cases(SIZES['clean'], STREAM_CLEAN, drift=False)
-    drifted = cases(SIZES['drifted'], STREAM_DRIFTED, inner=True)
+    clean = cases(sizes['clean'], STREAM_CLEAN, drift=False)
+    drifted = cases(sizes['drifted'], STREAM_DRIFTED, inner=True)
     out = {'clean': [('clean', w, s) for w, s in clean],
            'drifted': [('drifted', w, s) for w, s in drifted],
            'nominal': [], 'beyond': []}
-    for i in range(SIZES['nominal']):
+    for i in range(sizes['nominal']):
         rng = np.random.default_rng([STREAM_NOMINAL, i])
         wear = {f.name: f.nominal for f in FAULTS}
         wear.update(draw_drift(rng, b, p, inner=True))
         out['nominal'].append(('nominal', wear, int(rng.integers(0, 2 ** 31 - 1))))
     entries = beyond_entries(b)
-    drifted = cases(SIZES['beyond_per_entry'] * len(entries), STREAM_BEYOND, inner=True)
+    drifted = cases(sizes['beyond_per_entry'] * len(entries), STREAM_BEYOND, inner=True)
     for k, (wear, seed) in enumerate(drifted):
         label, changes = entries[k % len(entries)]
         out['beyond'].append((label, {**wear, **changes}, seed))
@@ -116,10 +119,10 @@ def _per_fault(a, digits=3) -> dict:
     return dict(zip(FAULT_NAMES, np.round(a, digits).tolist()))
 
 
-def preflight_drift(workers: int = 2) -> dict:
+def preflight_drift(workers: int = 2, sizes: dict = SIZES) -> dict:
     """The figures of the module's four sets (one sweep on ``workers`` processes)."""
     t0 = time.perf_counter()
-    sets = bench_cases()
+    sets = bench_cases(sizes)
     flat = [c for name in ('clean', 'drifted', 'nominal', 'beyond') for c in sets[name]]
     rows = _run(flat, workers)
     by_set, k = {}, 0
@@ -163,11 +166,17 @@ def preflight_drift(workers: int = 2) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description='pre-flight fault network under drift')
-    ap.add_argument('--workers', type=int, default=2, help='sweep workers (1: in process)')
+    ap.add_argument('--workers', type=int, default=None,
+                    help='sweep workers (1: in process; default 2, with --smoke 1)')
+    ap.add_argument('--smoke', action='store_true',
+                    help='one or two cases per set: a check, no figure')
     args = ap.parse_args(argv)
+    if args.workers is None:
+        args.workers = 1 if args.smoke else 2
     if args.workers < 1:
         ap.error(f'--workers {args.workers} must be at least 1')
-    out = preflight_drift(args.workers)
+    out = {'benchmark': 'health_preflight', 'smoke': args.smoke,
+           **preflight_drift(args.workers, SMOKE_SIZES if args.smoke else SIZES)}
     out['loadavg'] = [round(v, 2) for v in os.getloadavg()]
     print(json.dumps(out, indent=1))
     return 0

@@ -17,7 +17,10 @@ read OK with a 2-sigma interval excluding the truth, mismatch flags (the referen
 residual beyond ``residual_error_pa``), and the confusion table of the true level against the
 reported one.
 
-    python bench/health_valve.py [--workers 2] [--quick]
+    python bench/health_valve.py [--workers 2] [--quick] [--smoke]
+
+``--smoke``: one valve per set (two ``beyond`` values), in process: a check that the bench
+runs, no figure.
 """
 
 import argparse
@@ -101,19 +104,25 @@ def figures(table, cases, procedure, lim) -> dict:
     return out
 
 
-def sets(quick: bool) -> dict:
-    n = 12 if quick else 40
+#: Cases per set: (clean and noisy valves, drifted, nominal drifted, per beyond value, beyond
+#: values: None for every one of the bench's).
+SIZES = {'full': (40, 200, 24, 10, None), 'quick': (12, 40, 8, 3, None),
+         'smoke': (1, 1, 1, 1, 2)}
+
+
+def sets(size: str = 'full') -> dict:
+    """``{set: (cases, noise)}`` with the counts of ``SIZES[size]``."""
+    n, n_drift, n_nominal, per, n_beyond = SIZES[size]
     clean = drifted_cases(n, STREAMS['clean'], drift=False)
     out = {'clean': (clean, 0.0), 'noise_1pct': (clean, 0.01),
-           'drift': (drifted_cases(40 if quick else 200, STREAMS['drift']), 0.0),
-           'nominal_drift': (drifted_cases(8 if quick else 24, STREAMS['nominal_drift'],
+           'drift': (drifted_cases(n_drift, STREAMS['drift']), 0.0),
+           'nominal_drift': (drifted_cases(n_nominal, STREAMS['nominal_drift'],
                                            wear=False), 0.0)}
     from eha_ros.physics import default_params
     from eha_ros.physics.bench import load_bench
     p = default_params()
-    b = load_bench(params=p)
+    b = load_bench()
     beyond, k = [], 0
-    per = 3 if quick else 10
     for name, entry in b.beyond.items():
         values = ([f * getattr(p, name) for f in entry['factors']] if 'factors' in entry
                   else list(entry['values']))
@@ -121,15 +130,15 @@ def sets(quick: bool) -> dict:
             beyond += [dict(c, _beyond=f'{name}={v:.4g}') for c in drifted_cases(
                 per, STREAMS['beyond'] + 1000 * k, overrides={name: v})]
             k += 1
-    out['beyond'] = (beyond, 0.0)
+    out['beyond'] = (beyond[:None if n_beyond is None else n_beyond * per], 0.0)
     return out
 
 
-def valve_drift(workers: int = 2, quick: bool = False, progress=None) -> dict:
-    """The figures of every set (module docstring), both procedures."""
+def valve_drift(workers: int = 2, size: str = 'full', progress=None) -> dict:
+    """The figures of every set (module docstring) of ``SIZES[size]``, both procedures."""
     lim = HealthThresholds.load()
     out = {}
-    for name, (cases, noise) in sets(quick).items():
+    for name, (cases, noise) in sets(size).items():
         clean = [{k: v for k, v in c.items() if k != '_beyond'} for c in cases]
         out[name] = {}
         for procedure in ('settled', 'reference'):
@@ -154,12 +163,21 @@ def valve_drift(workers: int = 2, quick: bool = False, progress=None) -> dict:
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument('--workers', type=int, default=2)
-    ap.add_argument('--quick', action='store_true', help='fewer cases (a smoke run)')
+    ap.add_argument('--workers', type=int, default=None,
+                    help='sweep workers (1: in process; default 2, with --smoke 1)')
+    ap.add_argument('--quick', action='store_true', help='fewer cases')
+    ap.add_argument('--smoke', action='store_true',
+                    help='one or two valves per set: a check, no figure')
     args = ap.parse_args()
+    if args.workers is None:
+        args.workers = 1 if args.smoke else 2
+    if args.workers < 1:
+        ap.error(f'--workers {args.workers} must be at least 1')
+    size = 'smoke' if args.smoke else 'quick' if args.quick else 'full'
     t0 = time.perf_counter()
-    out = {'load_before': [round(x, 2) for x in os.getloadavg()]}
-    out.update(valve_drift(args.workers, args.quick,
+    out = {'benchmark': 'health_valve', 'smoke': args.smoke, 'size': size,
+           'load_before': [round(x, 2) for x in os.getloadavg()]}
+    out.update(valve_drift(args.workers, size,
                            progress=lambda line: print(line, flush=True)))
     out['load_after'] = [round(x, 2) for x in os.getloadavg()]
     out['wall_s'] = round(time.perf_counter() - t0, 1)

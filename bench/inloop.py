@@ -22,7 +22,10 @@ process; ``--data DIR`` keeps both datasets (and resumes them).
     nice python bench/inloop.py [--models dlut,dnn,dga,lut,ga,nn,nn2] [--seeds 20]
         [--noise-models dlut,dnn,dga,lut,ga] [--large-dts 2e-6,5e-6,1e-5]
         [--scenarios a,b] [--no-noise] [--wear nominal|all] [--wear-points rand_6,...]
-        [--jobs 2] [--data DIR] [--quiet] [--out FILE]
+        [--jobs 2] [--data DIR] [--quiet] [--out FILE] [--smoke]
+
+``--smoke``: one short scenario at nominal wear for dlut and lut, two seeds, one larger step,
+in process: a check that the bench runs, no figure.
 """
 
 import argparse
@@ -60,7 +63,12 @@ def main(argv=None):
                     help='keep the sweeps\' datasets here (resumed if present)')
     ap.add_argument('--quiet', action='store_true', help='no progress bar')
     ap.add_argument('--out', default=None, help='also write the JSON here')
+    ap.add_argument('--smoke', action='store_true', help='a tiny case: a check, no figure')
     args = ap.parse_args(argv)
+    if args.smoke:
+        args.models, args.scenarios, args.wear, args.seeds = 'dlut,lut', 'step_0p01', \
+            'nominal', 2
+        args.large_dts, args.jobs, args.quiet = '5e-6', 1, True
     t0 = time.perf_counter()
     models = [m for m in args.models.split(',') if m]
     unknown = [m for m in models if m not in MODELS or m == 'hf']
@@ -87,7 +95,8 @@ def main(argv=None):
         wear = {w: WEAR_POINTS[w] for w in names}
     noise_models = ([m for m in models if m in args.noise_models.split(',')]
                     if not args.no_noise and args.seeds > 0 else [])
-    result = {'benchmark': 'inloop', 'dt_s': DT_S, 'controller_period_s': CONTROLLER_PERIOD_S,
+    result = {'benchmark': 'inloop', 'smoke': args.smoke,
+              'dt_s': DT_S, 'controller_period_s': CONTROLLER_PERIOD_S,
               'models': models, 'scenarios': scenarios, 'noise_models': noise_models,
               'seeds': args.seeds, 'jobs': args.jobs,
               'wear': {k: v for k, v in wear.items()}, 'noise_free': {}, 'noise': {},

@@ -23,7 +23,11 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument('--maps', type=int, default=60, help='maps timed when not --full')
     ap.add_argument('--full', action='store_true', help='time the whole DB4-size set')
+    ap.add_argument('--smoke', action='store_true',
+                    help='the same code on two maps: a check, no figure')
     args = ap.parse_args()
+    if args.smoke:
+        args.maps, args.full = 2, False
     p = default_params()
     xs = spool_grid(133)
     q = np.linspace(-5e-5, 5e-5, 15)
@@ -43,7 +47,7 @@ def main():
     rate = points * steps / wall
     db4_points = 133 * 15 * 30 * 30
     print(json.dumps({
-        'benchmark': 'maps', 't_end_s': 1e-2, 'dt_s': 1e-6, 'points': points,
+        'benchmark': 'maps', 'smoke': args.smoke, 't_end_s': 1e-2, 'dt_s': 1e-6, 'points': points,
         'maps_timed': n_maps, 'wall_s': round(wall, 3),
         'point_steps_per_s': float(f'{rate:.4g}'),
         'db4_points': db4_points,

@@ -34,13 +34,20 @@ def main():
     ap.add_argument('--repeat', type=int, default=3)
     ap.add_argument('--models', default=','.join(m for m in MODELS if m != 'hf'))
     ap.add_argument('--large-dts', default='2e-6,5e-6')
+    ap.add_argument('--smoke', action='store_true',
+                    help='the same code on a tiny case (10 ms, one repeat, dlut and lut): a check')
     args = ap.parse_args()
+    if args.smoke:
+        args.duration, args.repeat, args.large_dts = 0.01, 1, '5e-6'
+        if args.models == ap.get_default('models'):
+            args.models = 'dlut,lut'  # one dynamic, one static: each model compiles anew
     p = default_params()
     t0 = time.perf_counter()
     simulate(p, 'step_0p1', duration_s=1e-3)
     simulate(p, 'step_0p1', duration_s=1e-3, controller_period_s=1e-3)
     warmup = time.perf_counter() - t0
-    out = {'benchmark': 'plant_rtf', 'dt_s': 1e-6, 'simulated_s': args.duration,
+    out = {'benchmark': 'plant_rtf', 'smoke': args.smoke,
+           'dt_s': 1e-6, 'simulated_s': args.duration,
            'jit_warmup_s': round(warmup, 3), 'cpu': platform.processor() or platform.machine(),
            'cases': {}}
     for scenario in ('step_0p1', 'sine_0p1_10pi'):

@@ -11,12 +11,17 @@
 
 Prints one JSON object with the files written.
 
-    python bench/plots.py [--out docs/figures]
+    python bench/plots.py [--out docs/figures] [--smoke]
+
+``--smoke`` draws every figure into a temporary folder (removed afterwards, unless ``--out`` is
+given) and reports their sizes: a check that the figures can be drawn, nothing overwritten.
 """
 
 import argparse
 import json
 from pathlib import Path
+import shutil
+import tempfile
 
 import matplotlib
 matplotlib.use('Agg')
@@ -121,17 +126,29 @@ def step_plot(p, out):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument('--out', type=Path, default=Path('docs/figures'))
+    ap.add_argument('--out', type=Path, default=None, help='folder (default docs/figures)')
+    ap.add_argument('--smoke', action='store_true',
+                    help='draw into a temporary folder and report the sizes: a check')
     args = ap.parse_args()
+    scratch = None
+    if args.out is None:
+        args.out = Path(scratch := tempfile.mkdtemp(prefix='eha-plots-')) if args.smoke \
+            else Path('docs/figures')
     args.out.mkdir(parents=True, exist_ok=True)
     p = default_params()
-    files = {}
-    for name, fn in (('p12_xs', p12_xs), ('qj_xs', qj_xs), ('overlap', overlap_plot),
-                     ('step', step_plot)):
-        path = args.out / f'{name}.png'
-        fn(p, path)
-        files[name] = str(path)
-    print(json.dumps({'benchmark': 'plots', 'files': files}))
+    files, sizes = {}, {}
+    try:
+        for name, fn in (('p12_xs', p12_xs), ('qj_xs', qj_xs), ('overlap', overlap_plot),
+                         ('step', step_plot)):
+            path = args.out / f'{name}.png'
+            fn(p, path)
+            files[name] = None if scratch else str(path)
+            sizes[name] = path.stat().st_size
+    finally:
+        if scratch:
+            shutil.rmtree(scratch)
+    print(json.dumps({'benchmark': 'plots', 'smoke': args.smoke, 'files': files,
+                      'bytes': sizes}))
 
 
 if __name__ == '__main__':

@@ -14,6 +14,7 @@ Prints one JSON object::
     python bench/recording.py [--duration 60] [--rate 1000] [--replay-seconds 10]
     python bench/recording.py --graph          # record the real graph instead
     python bench/recording.py --kill-trials 10 # SIGKILL the recorder, eha-recover, rosbags
+    python bench/recording.py --smoke          # 1 s recorded, 0.5 s replayed: a check
 
 ``--graph``: the real node graph instead (each node its own process, realtime at 1 kHz, the
 ``sine_0p1_5pi`` command continued for the duration, health monitor on); published counts are
@@ -422,14 +423,20 @@ def main() -> int:
                     help='instead: SIGKILL the recorder at N random moments, recover, check')
     ap.add_argument('--role', choices=('bench', 'publisher'), default='bench',
                     help=argparse.SUPPRESS)
+    ap.add_argument('--smoke', action='store_true',
+                    help='1 s recorded, 0.5 s replayed (with --kill-trials: one trial): a check')
     args = ap.parse_args()
+    if args.smoke and args.role == 'bench':
+        args.duration, args.replay_seconds = 1.0, 0.5
+        args.kill_trials = min(args.kill_trials, 1)
     if args.kill_trials:
         print(json.dumps(kill_trials(args.kill_trials, args.rate)))
         return 0
     if args.role == 'publisher':
         print(json.dumps(_publish(args.duration, args.rate, wait_s=15.0)))
         return 0
-    print(json.dumps(run(args.duration, args.rate, args.replay_seconds, args.graph)))
+    print(json.dumps({**run(args.duration, args.rate, args.replay_seconds, args.graph),
+                      'smoke': args.smoke}))
     return 0
 
 

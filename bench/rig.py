@@ -16,7 +16,9 @@ Prints one JSON object:
 
 Each section records the load averages before and after (``os.getloadavg``).
 
-    python bench/rig.py [--runs 50] [--event-runs 10] [--realtime-s 10]
+    python bench/rig.py [--runs 50] [--event-runs 10] [--realtime-s 10] [--smoke]
+
+``--smoke``: one lockstep run, two event runs and 0.5 s of realtime: a check, no figure.
 """
 
 import argparse
@@ -115,8 +117,11 @@ def main():
     ap.add_argument('--runs', type=int, default=50, help='lockstep runs for the loss count')
     ap.add_argument('--event-runs', type=int, default=10)
     ap.add_argument('--realtime-s', type=float, default=10.0, help='0: no idle realtime run')
+    ap.add_argument('--smoke', action='store_true', help='tiny counts: a check, no figure')
     args = ap.parse_args()
-    out = {'benchmark': 'rig', 'cores': os.cpu_count()}
+    if args.smoke:
+        args.runs, args.event_runs, args.realtime_s = 1, 2, 0.5
+    out = {'benchmark': 'rig', 'smoke': args.smoke, 'cores': os.cpu_count()}
     if args.runs:
         out['lossless'] = lossless(args.runs)
     if args.event_runs:

@@ -57,10 +57,14 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument('--n', type=int, default=20000)
     ap.add_argument('--refit', action='store_true')
+    ap.add_argument('--smoke', action='store_true',
+                    help='the same code on tiny sets (no refit): a check, no figure')
     args = ap.parse_args()
-    out = {'benchmark': 'surrogates_dynamic', 'models': {}}
+    if args.smoke:
+        args.n, args.refit = 400, False
+    out = {'benchmark': 'surrogates_dynamic', 'smoke': args.smoke, 'models': {}}
     p = default_params()
-    xs, p1, p2 = _trajectory()
+    xs, p1, p2 = _trajectory(2000 if args.smoke else 200000)
     o1, o2 = np.empty(xs.size), np.empty(xs.size)
     lap_s, lap_r = np.full(xs.size, p.overlap_supply_m), np.full(xs.size, p.overlap_return_m)
     out['hf_valve_flows_ns_per_call'] = _best_ns(lambda: _hf_loop(xs, p1, p2, p, o1, o2),
@@ -71,8 +75,9 @@ def main():
         ns = _best_ns(lambda: _chamber_loop(s.kernel, data, xs, p1, p2, lap_s, lap_r, o1, o2),
                       xs.size)
         t0 = time.perf_counter()
+        grid = {'n_xs': 7, 'n_p': 7} if args.smoke else {}
         out['models'][name] = {'edge_flow_relative': edge_errors(s, n=args.n, seed=5),
-                               'chamber_flow_relative_to_max': chamber_errors(s),
+                               'chamber_flow_relative_to_max': chamber_errors(s, **grid),
                                'artefact_bytes': (models_dir('surrogates')
                                                   / f'{name}.npz').stat().st_size,
                                'kernel_ns_per_call': ns}

@@ -23,7 +23,10 @@ a smooth 1e6-step trajectory), a Python-level scalar call, batch throughput of
 ``FluidSurrogate.p12`` on 1e6 points.  Build: ``build_artefact`` timed into a temporary folder
 (``--no-build``: the times recorded in the artefacts).
 
-    python bench/surrogates_lut_ga.py [--no-build] [--de-maxiter 300]
+    python bench/surrogates_lut_ga.py [--no-build] [--de-maxiter 300] [--smoke]
+
+``--smoke`` runs the same code on tiny sets (a few maps, 2,000 calls, a small table and GA
+build, one differential-evolution generation): a check that the bench runs, no figure.
 """
 
 import argparse
@@ -41,12 +44,17 @@ from eha_ros.physics.maps import WEAR_RANGES, spool_grid, transient_map
 from eha_ros.surrogates import ga, lut
 from eha_ros.training import ga as ga_fit
 from eha_ros.training import lut as lut_build
-from eha_ros.artefacts import models_dir
+from eha_ros.artefacts import load_artefact, models_dir
 from eha_ros.surrogates.registry import load_surrogate
 from eha_ros.physics.maps import FLOW_MAX_M3_S
 from eha_ros.training.database import get_database, map_errors
 
 N_CALLS = 1_000_000
+
+#: Sizes of a ``--smoke`` run (see the module docstring); ``None``: the full bench.
+SMOKE = {'calls': 2000, 'maps': 2, 'db1_pairs': 2, 'de_maxiter': 1,
+         'lut_grid': {'n_xs': 9, 'n_q': 5, 'n_overlap': 2, 'n_clearance': 2},
+         'ga': {'population': 8, 'generations': 2, 'stall_generations': 2, 'elite': 1}}
 
 
 @njit(cache=True)
@@ -95,7 +103,7 @@ def _timing(s, rand, smooth):
     _kernel_loop(s.kernel, s.data, *(a[:10] for a in rand))  # compile
     t_rand = _best(lambda: _kernel_loop(s.kernel, s.data, *rand), 7)
     t_smooth = _best(lambda: _kernel_loop(s.kernel, s.data, *smooth), 7)
-    m = 20000
+    m = min(20000, n)
     s.p12(0.0, 0.0, 0.0, 3e-6)
     args = [tuple(float(a[i]) for a in rand) for i in range(m)]
     t0 = time.perf_counter()
@@ -155,7 +163,7 @@ def _small_signal(model, small):
     return {k: _summary(map_errors(model, m)) for k, m in small.items()}
 
 
-def _bench_lut(rand, smooth, maps, db_maps, small, build):
+def _bench_lut(rand, smooth, maps, db_maps, small, build, smoke=False):
     from scipy.interpolate import RegularGridInterpolator
 
     s = load_surrogate('lut')
@@ -205,14 +213,16 @@ def _bench_lut(rand, smooth, maps, db_maps, small, build):
     if build:
         with tempfile.TemporaryDirectory() as d:
             t0 = time.perf_counter()
-            lut_build.build_artefact(path=Path(d) / 'lut.npz')
+            lut_build.build_artefact(path=Path(d) / 'lut.npz',
+                                     grid=SMOKE['lut_grid'] if smoke else None,
+                                     n_validation_maps=1 if smoke else 5)
             out['build_s'] = round(time.perf_counter() - t0, 1)
     else:
         out['build_s_recorded'] = s.meta.get('build_wall_s')
     return out
 
 
-def _bench_ga(rand, smooth, maps, small, build, de_maxiter):
+def _bench_ga(rand, smooth, maps, small, build, de_maxiter, smoke=False):
     from scipy.optimize import differential_evolution
 
     p = default_params()
@@ -251,6 +261,7 @@ def _bench_ga(rand, smooth, maps, small, build, de_maxiter):
     # the function's limit per wear pair: refit on each DB1 map
     db1 = get_database('DB1')
     pairs = [(i, j) for i in range(db1.overlap_m.size) for j in range(db1.clearance_m.size)]
+    pairs = pairs[:SMOKE['db1_pairs']] if smoke else pairs
     fresh = lut_build.heldout_maps(0, wear=[(db1.overlap_m[i], db1.clearance_m[j])
                                             for i, j in pairs])
     on_map, off_grid = [], []
@@ -294,26 +305,33 @@ def _bench_ga(rand, smooth, maps, small, build, de_maxiter):
     if build:
         with tempfile.TemporaryDirectory() as d:
             t0 = time.perf_counter()
-            bp = ga_fit.build_artefact(path=Path(d) / 'ga.npz')
+            settings = ga_fit.GASettings(**SMOKE['ga']) if smoke else None
+            bp = ga_fit.build_artefact(path=Path(d) / 'ga.npz', settings=settings,
+                                       gradient=not smoke)
             out['build_s'] = round(time.perf_counter() - t0, 1)
-            from eha_ros.surrogates.base import load_artefact
-            out['build_reproduces_shipped'] = bool(np.array_equal(load_artefact(bp)[0][0],
-                                                                  s.data[0]))
+            built = load_artefact(bp, 'eha_ros.training.ga')[0][0]
+            # a smoke build runs other settings: it is not expected to reproduce the shipped
+            out['build_reproduces_shipped'] = (None if smoke else
+                                               bool(np.array_equal(built, s.data[0])))
     else:
         out['build_s_recorded'] = meta.get('build_wall_s')
     return out
 
 
-def run(build: bool = True, de_maxiter: int = 300) -> dict:
-    """All figures as one dict (see the module docstring)."""
+def run(build: bool = True, de_maxiter: int = 300, smoke: bool = False) -> dict:
+    """All figures as one dict (see the module docstring); ``smoke``: the sizes of
+    :data:`SMOKE`."""
     t0 = time.perf_counter()
-    rand, smooth = _inputs()
-    maps = lut_build.heldout_maps(12, seed=2024, n_q=30)
-    db_maps = _db_grid_maps(12, seed=4242)
+    n_maps = SMOKE['maps'] if smoke else 12
+    rand, smooth = _inputs(SMOKE['calls'] if smoke else N_CALLS)
+    maps = lut_build.heldout_maps(n_maps, seed=2024, n_q=30)
+    db_maps = _db_grid_maps(n_maps, seed=4242)
     small = {'xs_25um_q_1e-5': _small_signal_maps(1e-5),
              'xs_25um_q_1e-6': _small_signal_maps(1e-6)}
-    res = {'lut': _bench_lut(rand, smooth, maps, db_maps, small, build),
-           'ga': _bench_ga(rand, smooth, maps, small, build, de_maxiter)}
+    de_maxiter = SMOKE['de_maxiter'] if smoke else de_maxiter
+    res = {'smoke': smoke,
+           'lut': _bench_lut(rand, smooth, maps, db_maps, small, build, smoke),
+           'ga': _bench_ga(rand, smooth, maps, small, build, de_maxiter, smoke)}
     res['bench_wall_s'] = round(time.perf_counter() - t0, 1)
     return res
 
@@ -323,5 +341,8 @@ if __name__ == '__main__':
     ap.add_argument('--no-build', action='store_true',
                     help='report the recorded build times instead of rebuilding')
     ap.add_argument('--de-maxiter', type=int, default=300)
+    ap.add_argument('--smoke', action='store_true',
+                    help='the same code on tiny sets: a check, no figure')
     a = ap.parse_args()
-    print(json.dumps(run(not a.no_build, a.de_maxiter)))
+    print(json.dumps({'benchmark': 'surrogates_lut_ga',
+                      **run(not a.no_build, a.de_maxiter, a.smoke)}))

@@ -11,7 +11,10 @@ Python-level scalar call, batch throughput.  Training: times and the LM vs Adam 
 comparison recorded in the artefacts; scikit-learn's ``MLPRegressor`` (same hidden sizes)
 trained here on the same split for comparison.
 
-    python bench/surrogates_nn.py [--sklearn-iter 200] [--no-sklearn]
+    python bench/surrogates_nn.py [--sklearn-iter 200] [--no-sklearn] [--smoke]
+
+``--smoke`` runs the same code on tiny sets (2 fresh maps, 2,000 calls, 2 scikit-learn
+iterations): a check that the bench runs, no figure.
 """
 
 import argparse
@@ -30,6 +33,10 @@ from eha_ros.training.database import heldout_maps
 from eha_ros.surrogates.base import relative_error
 from eha_ros.surrogates.registry import load_surrogate
 from eha_ros.training.database import get_database
+
+
+#: Sizes of a ``--smoke`` run; the full bench's are the defaults of the functions.
+SMOKE = {'calls': 2000, 'maps': 2, 'sklearn_iter': 2}
 
 
 def _summary(errs):
@@ -53,7 +60,7 @@ def _timing(s, n=1_000_000, seed=0):
         t0 = time.perf_counter()
         nn._kernel_loop(s.kernel, s.data, xs, q, lap, clr)
         best = min(best, time.perf_counter() - t0)
-    m = 20000
+    m = min(20000, n)
     s.p12(0.0, 0.0, 0.0, 3e-6)
     t0 = time.perf_counter()
     for i in range(m):
@@ -70,7 +77,7 @@ def _timing(s, n=1_000_000, seed=0):
             'batch_points_per_s': round(n / bt)}
 
 
-def _nn_accuracy(s):
+def _nn_accuracy(s, n_maps=12):
     """Held-out DB maps (the split in the artefact) and fresh maps at random wear."""
     meta = s.meta
     out = {}
@@ -81,7 +88,7 @@ def _nn_accuracy(s):
             out[f'{name}_held_out'] = _summary(
                 nn_train.network_map_errors(s.data, nn_train.db_maps(db, test)))
         for q_max in (6e-5, 1.5e-5):
-            maps = heldout_maps(12, q_max_m3_s=q_max, n_q=15, seed=4242)
+            maps = heldout_maps(n_maps, q_max_m3_s=q_max, n_q=15, seed=4242)
             out[f'fresh_random_wear_q{q_max:.1e}'] = _summary(
                 nn_train.network_map_errors(s.data, maps))
     else:
@@ -133,13 +140,13 @@ def _sklearn(meta, max_iter, seed=0):
             'max_iter': max_iter, 'errors': errs}
 
 
-def _diag(seed=0):
+def _diag(seed=0, n_maps=20, n_calls=2000):
     m = valve_test.load_diagnostic()
     keys = ('algorithm', 'time_s', 'adam_steps', 'lbfgs_iters', 'noise_augmentation')
     out = {'architecture': m.meta['architecture'],
            'training': {k: m.meta['training'][k] for k in keys},
            'held_out_recorded': m.meta['errors'], 'alternatives': m.meta.get('alternatives')}
-    maps = heldout_maps(20, q_max_m3_s=6e-5, n_q=15, seed=9090)
+    maps = heldout_maps(n_maps, q_max_m3_s=6e-5, n_q=15, seed=9090)
     curves = np.concatenate([p12.T for *_, p12 in maps])
     q = np.concatenate([mq for _, mq, *_ in maps])
     wear = np.concatenate([np.tile([clr, lap], (mq.size, 1)) for _, mq, lap, clr, _ in maps])
@@ -152,7 +159,7 @@ def _diag(seed=0):
             m, curves, q, wear, idx, noise_level=0.01, noise='rms', seed=seed)}
     one = curves[0]
     valve_test.estimate_wear(one, q[0])
-    n = 2000
+    n = n_calls
     t0 = time.perf_counter()
     for _ in range(n):
         valve_test.estimate_wear(one, q[0])
@@ -166,9 +173,13 @@ def _diag(seed=0):
     return out
 
 
-def run(sklearn_iter: int = 200, with_sklearn: bool = True) -> dict:
-    """All figures as one dict (see the module docstring)."""
-    res = {}
+def run(sklearn_iter: int = 200, with_sklearn: bool = True, smoke: bool = False) -> dict:
+    """All figures as one dict (see the module docstring); ``smoke``: the sizes of
+    :data:`SMOKE`."""
+    res = {'smoke': smoke}
+    if smoke:
+        sklearn_iter = SMOKE['sklearn_iter']
+    sizes = ({'n_maps': SMOKE['maps']}, {'n': SMOKE['calls']}) if smoke else ({}, {})
     for name in ('nn', 'nn2'):
         s = load_surrogate(name)
         meta = s.meta
@@ -177,13 +188,13 @@ def run(sklearn_iter: int = 200, with_sklearn: bool = True) -> dict:
              'training': {k: meta['training'][k] for k in ('algorithm', 'time_s', 'epochs',
                                                            'stop', 'databases')},
              'lm_vs_adam_lbfgs': meta['comparison'],
-             'accuracy': _nn_accuracy(s), 'speed': _timing(s)}
+             'accuracy': _nn_accuracy(s, **sizes[0]), 'speed': _timing(s, **sizes[1])}
         if 'alternatives' in meta:
             r['alternatives'] = meta['alternatives']
         if name == 'nn' and with_sklearn:
             r['sklearn_mlpregressor'] = _sklearn(meta, sklearn_iter)
         res[name] = r
-    res['diag'] = _diag()
+    res['diag'] = _diag(**({'n_maps': SMOKE['maps'], 'n_calls': 20} if smoke else {}))
     return res
 
 
@@ -191,5 +202,8 @@ if __name__ == '__main__':
     ap = argparse.ArgumentParser()
     ap.add_argument('--sklearn-iter', type=int, default=200)
     ap.add_argument('--no-sklearn', action='store_true')
+    ap.add_argument('--smoke', action='store_true',
+                    help='the same code on tiny sets: a check, no figure')
     a = ap.parse_args()
-    print(json.dumps(run(a.sklearn_iter, not a.no_sklearn)))
+    print(json.dumps({'benchmark': 'surrogates_nn',
+                      **run(a.sklearn_iter, not a.no_sklearn, a.smoke)}))

@@ -25,7 +25,10 @@ plain loop on the same cores (fraction and seconds per case), scaling (``workers
 ``workers_1``) and its efficiency, and from these an estimate of a 100,000-case pre-flight
 Monte Carlo on 64 cores with its assumptions.  Load average before and after.
 
-    nice python bench/sweep.py [--cases 32] [--preflight-cases 128] [--repeat 3]
+    nice python bench/sweep.py [--cases 32] [--preflight-cases 128] [--repeat 3] [--smoke]
+
+``--smoke``: 4 pre-flight cases measured once (the scenario kind's spec only parsed): a check
+that the bench runs, no figure.
 
 ``--cases`` counts points for ``scenario`` (two cases each).
 """
@@ -151,14 +154,22 @@ def main(argv=None) -> int:
     ap.add_argument('--cases', type=int, default=32, help='scenario points (two cases each)')
     ap.add_argument('--preflight-cases', type=int, default=128)
     ap.add_argument('--repeat', type=int, default=3)
+    ap.add_argument('--smoke', action='store_true', help='tiny sets: a check, no figure')
     args = ap.parse_args(argv)
-    out = {'benchmark': 'sweep', 'cores': os.cpu_count(), 'repeat': args.repeat,
+    if args.smoke:
+        args.cases, args.preflight_cases, args.repeat = 2, 4, 1
+    out = {'benchmark': 'sweep', 'smoke': args.smoke,
+           'cores': os.cpu_count(), 'repeat': args.repeat,
            'load_before': os.getloadavg(),
            'goals': {'overhead': 'at most 10 % against a plain loop on the same cores, '
                                  'cases of 0.2 s or more (scenario)',
                      'scaling': '2 workers at least 1.8 x one worker'}}
     with tempfile.TemporaryDirectory(prefix='eha-bench-sweep-') as tmp:
-        out['scenario'] = measure('scenario', args.cases, args.repeat, Path(tmp))
+        if args.smoke:  # the estimate below needs only the pre-flight kind: the other checked
+            out['scenario'] = {'spec_cases': len(parse_spec(spec_raw('scenario', args.cases),
+                                                            source='bench').points())}
+        else:
+            out['scenario'] = measure('scenario', args.cases, args.repeat, Path(tmp))
         out['preflight'] = measure('preflight', args.preflight_cases, args.repeat, Path(tmp))
     pf = out['preflight']
     case_s = pf['case_wall_s']
