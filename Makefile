@@ -1,7 +1,8 @@
 # eha_ros: build, install and test in a local virtual environment (.venv).
 #
 #   make demo    install, then run the main job: the test campaign through the ROS graph
-#   make test    install, lint (flake8), then run the test suite against the installed package
+#   make test    install (with requirements-bench.txt: the suite runs every bench in smoke
+#                mode), lint (flake8), then run the test suite against the installed package
 #   make install create .venv, install requirements.txt and the package (non-editable)
 #   make bench   install, plus requirements-bench.txt, then run the benchmarks
 #   make clean   remove .venv and build outputs
@@ -12,6 +13,8 @@
 PYTHON ?= python3
 VENV ?= .venv
 PYTEST_ARGS ?=
+# pytest-xdist workers of `make test` (every test that starts nodes has its own ROS domain)
+TEST_WORKERS ?= 2
 BENCH ?= bench/plant_rtf.py
 BENCH_ARGS ?=
 
@@ -46,8 +49,8 @@ install: $(STAMPS)/package
 
 # .venv/bin/pytest (not `python -m pytest`, which would put the source folder on sys.path):
 # the tests import the installed eha_ros, which carries the generated eha_ros.msg.
-test: install lint
-	$(BIN)/pytest $(PYTEST_ARGS)
+test: install $(STAMPS)/requirements-bench lint
+	$(BIN)/pytest -n $(TEST_WORKERS) --dist worksteal $(PYTEST_ARGS)
 
 # flake8 (configured in setup.cfg) over the package, the tests, the benches and the build.
 lint: $(STAMPS)/requirements

@@ -283,6 +283,11 @@ def _lock_memory() -> str | None:
 
 
 def _set_affinity(cpus: tuple[int, ...], threads: str) -> str | None:
+    # numba sizes its thread pool by the CPUs the process may use, read again at every
+    # compilation when NUMBA_NUM_THREADS is unset: pinning (or unpinning) after its pool has
+    # started would make a later compilation fail ("Cannot set NUMBA_NUM_THREADS to a different
+    # value once the threads have been launched").  Keep the count it has now.
+    os.environ.setdefault('NUMBA_NUM_THREADS', str(len(os.sched_getaffinity(0))))
     ok, refused, e = _for_threads(lambda tid: os.sched_setaffinity(tid, cpus), threads)
     want = ','.join(map(str, cpus))
     if e is not None:
