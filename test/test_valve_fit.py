@@ -15,7 +15,8 @@ from eha_ros.health.thresholds import HealthThresholds
 from eha_ros.health.valve_fit import ValveFitEstimator
 from eha_ros.physics import default_params
 from eha_ros.physics.bench import (Conditions, ConditionSensors, fluid_at, load_bench,
-                                   mean_conditions, measure_conditions, true_conditions)
+                                   mean_conditions, measure_conditions, temperature_of,
+                                   true_conditions)
 from eha_ros.physics.maintenance import ValveTest, valve_test_schedule
 from eha_ros.physics.maps import spool_grid, transient_map
 from eha_ros.physics.params import replace
@@ -211,3 +212,59 @@ def test_graph_maintenance_test_gives_the_benchs_estimate_and_lists_its_conditio
     assert set(d['conditions_by_test']) == {'valve-test', 'preflight'}
     e = d['estimates']['radial_clearance_m']
     assert e['value'] == row['est_radial_clearance_m'] and e['method'] == 'settled-valve-fit'
+
+
+def test_bench_fluid_law_is_the_datasheets_whatever_the_parameters():
+    """One fluid law, anchored at the datasheet: a run's parameters never re-anchor it, so a
+    fluid at another viscosity has the temperature the datasheet gives that viscosity."""
+    b = load_bench()
+    hot = fluid_at(343.15, b)
+    assert b.fluid.viscosity_m2_s(313.15) == pytest.approx(1.4e-5, rel=1e-12)
+    assert b.fluid.viscosity_m2_s(373.15) == pytest.approx(5.0e-6, rel=1e-12)
+    t = temperature_of(replace(default_params(), **hot), b)
+    assert t == pytest.approx(343.15, abs=1e-9)
+    assert load_bench() is b   # one law: loaded once, never per parameter set
+    # readings of a hot plant: its temperature within the sensor's bias, noise and quantum
+    s = b.sensors['fluid_temperature_k']
+    readings = ConditionSensors(7, b).read(replace(default_params(), **hot), 200)[:, 2]
+    assert abs(readings.mean() - 343.15) <= s.bias + 4 * s.noise_std / np.sqrt(200) + s.resolution
+
+
+def test_graph_with_a_hot_fluid_params_file_measures_its_temperature_and_agrees_with_the_sweep(
+        eha_graph, tmp_path):
+    """The maintenance test through the graph with a plant params file whose fluid is at 60 degC
+    (viscosity and density from the datasheet law; the monitor keeps its nominal model): the
+    plant's sensor reads 60 degC, not the reference 40 degC, and the live estimate equals the sweep's for the same fluid, valve and
+    seed bit for bit."""
+    import yaml
+
+    from eha_ros.physics import params_to_dict
+    from eha_ros.physics.params import config_dir
+    from eha_ros.sweep import parse_spec, read_dataset, run_sweep
+    t_hot = 333.15
+    fluid = fluid_at(t_hot)
+    doc = yaml.safe_load((config_dir() / 'eha_params.yaml').read_text())
+    for name, value in fluid.items():
+        doc[name]['value'] = value
+    params_file = tmp_path / 'hot_fluid.yaml'
+    params_file.write_text(yaml.safe_dump(doc))
+    wear = {'radial_clearance_m': 2.1e-6, 'overlap_supply_m': 0.6e-6, 'overlap_return_m': 0.6e-6}
+    r = eha_graph(processes=False, scenario='maintenance_test_settled_quick', plant=wear,
+                  health=True,
+                  node_params={'servovalve_plant': {'params_file': str(params_file)}})
+    s = load_bench().sensors['fluid_temperature_k']
+    measured = r.state['fluid_temperature_measured_k']
+    assert abs(float(np.mean(measured)) - t_hot) <= s.bias + s.resolution
+    live = [m for m in r.health if m.method == 'settled-valve-fit']
+    assert len(live) == 2
+    spec = parse_spec({'procedure': 'valve_test', 'valve_test_procedure': 'settled',
+                       'flows_m3_s': [0.0, 6e-5], 'cases': [dict(wear, **fluid, seed=0)]},
+                      source='test', base=params_to_dict(default_params()))
+    run_sweep(spec, tmp_path / 'sweep', in_process=True)
+    row = read_dataset(tmp_path / 'sweep').to_pylist()[0]
+    assert row['status'] == 'ok', row['error']
+    assert abs(row['measured_fluid_temperature_k'] - t_hot) <= s.bias + s.resolution
+    assert live[-1].radial_clearance_m == row['est_radial_clearance_m']
+    assert live[-1].overlap_m == row['est_overlap_m']
+    assert abs(live[-1].radial_clearance_m - wear['radial_clearance_m']) <= (
+        2 * live[-1].radial_clearance_std_m)

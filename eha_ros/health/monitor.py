@@ -406,7 +406,7 @@ class MonitorCore:
         record['command_a'] = preflight_command(n, PREFLIGHT_TICK_S, self.params.current_limit_a)
         if conditions is None:
             from eha_ros.physics.bench import load_bench, true_conditions
-            c = true_conditions(self.params, load_bench(params=self.params))
+            c = true_conditions(self.params, load_bench())
             conditions = dataclasses.replace(c, assumed=True)
         est = self.faults.estimate(record, conditions)
         mismatch, note = est.mismatch, est.note

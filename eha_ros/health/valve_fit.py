@@ -168,7 +168,7 @@ def fit_curves(curves, cond: Conditions, base: PlantParams, bench=None,
     sensitivities of ``theta`` to the other measured conditions.  ``supply_std_pa``: the
     prior deviation of the supply pressure about ``cond``'s (default: its sensor's)."""
     from scipy.optimize import least_squares
-    b = bench or load_bench(params=base)
+    b = bench or load_bench()
     xs, q, p12, n_all, unsettled = _points(curves, cond)
     if xs.size < 10:
         raise ParameterError(f'valve test: {xs.size} of {n_all} points settled inside the '
@@ -233,7 +233,7 @@ class ValveFitEstimator:
     def __init__(self, params: PlantParams | None = None, calibration='default',
                  bench=None):
         self.params = params if params is not None else default_params()
-        self.bench = bench or load_bench(params=self.params)
+        self.bench = bench or load_bench()
         self.calibration = load_calibration() if calibration == 'default' else calibration
 
     def condition_std(self) -> np.ndarray:

@@ -159,7 +159,7 @@ class ServovalvePlant(Node):
         self.valve_test = (ValveTest.of(procedure, period_ns, dt_s, flows) if valve_test
                            else None)
         # the test bench's transducers of the conditions: one reading per published tick
-        self.sensors = ConditionSensors(seed, load_bench(params=base))
+        self.sensors = ConditionSensors(seed, load_bench())
         self.conditions = self.sensors.read(params)[0]
         self.test_tick = 0
         self.test_sample = None

@@ -7,11 +7,14 @@ metering-edge silting, hysteresis, ...) is drift the diagnosis must see through.
 
 Fluid law
     Kinematic viscosity by Walther's equation (ASTM D341),
-    ``log10(log10(nu_cSt + 0.7)) = A - B log10(T)``, through the nominal viscosity of
-    ``config/eha_params.yaml`` at the reference temperature and the fluid's hot value;
-    density ``rho(T) = rho_ref / (1 + alpha (T - T_ref))``.  :func:`fluid_at` gives both at a
-    temperature, :func:`temperature_of` the temperature of a viscosity (the plant's fluid has
-    the temperature its viscosity says).
+    ``log10(log10(nu_cSt + 0.7)) = A - B log10(T)``, through the datasheet's viscosities at
+    the reference and the hot temperature (``config/test_bench.yaml``); density
+    ``rho(T) = rho_ref / (1 + alpha (T - T_ref))``.  The law is anchored once, at the
+    datasheet: never at the parameters of a run, in any path (the nominal fluid of
+    ``config/eha_params.yaml`` must be the datasheet's at the reference temperature, checked
+    on load).  :func:`fluid_at` gives viscosity and density at a temperature,
+    :func:`temperature_of` the temperature of a viscosity (the plant's fluid has the
+    temperature its viscosity says by this law).
 
 Measured conditions
     :func:`measure_conditions`: a reading is the true value plus a calibration error fixed
@@ -129,12 +132,17 @@ def _num(doc, key, where):
         raise ParameterError(f'{where}: {key} must be a number') from None
 
 
-def load_bench(path=None, params: PlantParams | None = None) -> TestBench:
-    """Load ``config/test_bench.yaml`` (or ``path``); the fluid law must give the parameters'
-    viscosity and density at its reference temperature."""
-    p = params if params is not None else default_params()
+def load_bench(path=None) -> TestBench:
+    """Load ``config/test_bench.yaml`` (or ``path``).  The fluid law is the datasheet's
+    (anchored in the file, never at a run's parameters); the nominal parameters'
+    (``default_params()``) viscosity and density must be the law's at its reference
+    temperature."""
     path = path or config_dir() / 'test_bench.yaml'
-    return _load(str(path), p)
+    return _load(str(path), default_params())
+
+
+#: Relative agreement required between the nominal fluid of the parameters and the datasheet.
+_ANCHOR_RTOL = 1e-9
 
 
 @functools.lru_cache(maxsize=8)
@@ -149,14 +157,22 @@ def _load(path: str, p: PlantParams) -> TestBench:
         t_hot = _num(f, 'hot_temperature_k', f'{path}: fluid')
         nu_hot = _num(f, 'hot_viscosity_m2_s', f'{path}: fluid')
         alpha = _num(f, 'expansion_coefficient_1_k', f'{path}: fluid')
-        nu_ref = p.fluid_kinematic_viscosity_m2_s
-        if not (t_hot > t_ref > 0 and 0 < nu_hot < nu_ref and alpha >= 0):
-            raise ParameterError(f'{path}: fluid: need hot_temperature_k > reference > 0 and '
-                                 'a hot viscosity below the nominal one')
+        nu_ref = _num(f, 'reference_viscosity_m2_s', f'{path}: fluid')
+        rho_ref = _num(f, 'reference_density_kg_m3', f'{path}: fluid')
+        if not (t_hot > t_ref > 0 and 0 < nu_hot < nu_ref and alpha >= 0 and rho_ref > 0):
+            raise ParameterError(f'{path}: fluid: need hot_temperature_k > reference > 0, '
+                                 'a hot viscosity below the reference one and a positive '
+                                 'density')
+        for name, law_value in (('fluid_kinematic_viscosity_m2_s', nu_ref),
+                                ('fluid_density_kg_m3', rho_ref)):
+            if abs(getattr(p, name) / law_value - 1.0) > _ANCHOR_RTOL:
+                raise ParameterError(
+                    f'{path}: fluid: the nominal {name} = {getattr(p, name):.6g} is not the '
+                    f'datasheet\'s {law_value:.6g} at {t_ref:g} K (one fluid: change both)')
         w = [math.log10(math.log10(nu * 1e6 + 0.7)) for nu in (nu_ref, nu_hot)]
         b = (w[0] - w[1]) / (math.log10(t_hot) - math.log10(t_ref))
         law = FluidLaw(str(f.get('name', 'fluid')), w[0] + b * math.log10(t_ref), b, t_ref,
-                       p.fluid_density_kg_m3, alpha)
+                       rho_ref, alpha)
         sensors, service, nuisance, reasons = {}, {}, {}, {}
         for name in CONDITIONS:
             s = doc['sensors'][name]

@@ -517,7 +517,7 @@ class ValveTestProcedure(Procedure):
             # as the plant reports them at 1 kHz: one reading at start, one per test tick
             n_ticks = int(round(sch['hold_s'] * 1e3)) * sch['n_points'] * len(curves)
             cond = mean_conditions(measure_conditions(p, point.seed, n_ticks + 1,
-                                                      load_bench(params=nominal))[1:])
+                                                      load_bench())[1:])
             if self.spec.valve_test_procedure == 'settled':
                 est = ValveFitEstimator(nominal).estimate(curves, cond)
                 k, k_std = est.extra['valve_degradation']

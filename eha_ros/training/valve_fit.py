@@ -48,7 +48,7 @@ def drifted_cases(n: int, stream: int, *, wear: bool = True, drift: bool = True,
     i])``: wear uniform (or nominal), conditions and nuisances uniform over their envelopes
     (or nominal), then ``overrides`` (plant names, or ``fluid_temperature_k``)."""
     p = default_params()
-    b = load_bench(params=p)
+    b = load_bench()
     out = []
     for i in range(n):
         rng = np.random.default_rng([stream, i])
