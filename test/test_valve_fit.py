@@ -234,8 +234,8 @@ def test_graph_with_a_hot_fluid_params_file_measures_its_temperature_and_agrees_
         eha_graph, tmp_path):
     """The maintenance test through the graph with a plant params file whose fluid is at 60 degC
     (viscosity and density from the datasheet law; the monitor keeps its nominal model): the
-    plant's sensor reads 60 degC, not the reference 40 degC, and the live estimate equals the sweep's for the same fluid, valve and
-    seed bit for bit."""
+    plant's sensor reads 60 degC, not the reference 40 degC, and the live estimate equals the
+    sweep's for the same fluid, valve and seed bit for bit."""
     import yaml
 
     from eha_ros.physics import params_to_dict
