@@ -376,3 +376,17 @@ def test_batches_are_sized_by_time():
     assert got == list(range(200))
     fixed = Batcher(list(range(10)), size=4)
     assert [len(fixed.next(2)) for _ in range(3)] == [4, 4, 2]
+
+
+def test_a_local_cluster_gives_its_workers_one_numba_thread_and_leaves_this_process_alone():
+    """The workers run single-threaded; this process's NUMBA_NUM_THREADS is untouched (numba
+    here may have started its pool: a changed value would fail its next compilation)."""
+    from eha_ros.sweep.engine import _client, _close
+    before = os.environ.get('NUMBA_NUM_THREADS')
+    client, cluster = _client(1, None)
+    try:
+        seen = client.run(lambda: os.environ.get('NUMBA_NUM_THREADS'))
+    finally:
+        _close(client, cluster)
+    assert list(seen.values()) == [before or '1']
+    assert os.environ.get('NUMBA_NUM_THREADS') == before

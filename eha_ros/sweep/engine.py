@@ -209,12 +209,13 @@ def _client(workers: int, scheduler: str | None):
             return Client(scheduler, timeout='10s'), None
         except (OSError, TimeoutError) as exc:
             raise SweepError(f'--scheduler {scheduler}: cannot connect ({exc})') from None
-    # single-threaded workers: numba and BLAS pools of one thread in each process
-    for var in ('NUMBA_NUM_THREADS', 'OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS',
-                'MKL_NUM_THREADS'):
-        os.environ.setdefault(var, '1')
+    # single-threaded workers: numba and BLAS pools of one thread in each process, set in the
+    # workers only (the nannies' env), never in this process: numba here may have started its
+    # pool already, and a changed NUMBA_NUM_THREADS would fail its next compilation
+    one = {var: os.environ.get(var, '1') for var in (
+        'NUMBA_NUM_THREADS', 'OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS')}
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=':0', silence_logs=40)
+                           dashboard_address=':0', silence_logs=40, env=one)
     return Client(cluster), cluster
 
 

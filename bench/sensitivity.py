@@ -1,0 +1,267 @@
+"""Sensitivity screening of the diagnosis: Morris elementary effects (SALib) of every drawn
+plant parameter of ``config/tolerances.yaml`` on every estimate of the settled valve test and
+of the pre-flight check, in units of the estimate's stated deviation.
+
+Factors, per test: every ``nuisance`` and ``negligible`` parameter over its range (a factor on
+nominal, an absolute range, or a ratio to its breakaway friction), the measured conditions over
+the service envelope less the sensors' errors (the fluid through its temperature), the other
+test's estimated items over their estimators' ranges, and a yardstick: ``noise_seed`` (the
+torque-motor noise and sensor seed, two values), whose effect is what another noise seed does.
+The test's own items stay at the nominal valve, so an estimate's change is its error's change.
+Every case runs through the sweep engine (``eha_ros.sweep``), one Morris design per test
+(``--trajectories`` trajectories of ``k + 1`` points on a 4-level grid, seeded).
+
+Per test and estimate: ``mu_star`` (mean absolute elementary effect: about what the whole
+range does), its 95 % bootstrap half-width and ``sigma`` (spread of the effects: interaction
+or non-linearity), each divided by the median stated deviation of the estimate over the
+design's cases; per parameter the largest over the test's estimates.  The classification
+rule of ``config/tolerances.yaml``: ``negligible`` is a largest effect under 0.2.  Cases the
+test cannot assess (an error, too few settled points) drop their trajectory; the count is
+reported.
+
+Writes ``screening.json`` (the figures), ``screening.md`` (the table) and ``screening.png``
+(largest effect per parameter) into ``--out`` (default ``docs/screening``), and prints the JSON.
+
+    python bench/sensitivity.py [--tests valve_test,preflight] [--trajectories 8]
+        [--workers 2] [--seed 2027] [--out docs/screening] [--smoke]
+
+``--smoke``: two trajectories of the pre-flight check in process, written to a temporary
+folder: a check that the bench runs, no figure.
+"""
+
+import argparse
+import json
+import os
+from pathlib import Path
+import shutil
+import sys
+import tempfile
+import time
+
+os.environ.setdefault('NUMBA_NUM_THREADS', '1')
+
+import numpy as np  # noqa: E402
+
+from eha_ros.health.preflight import FAULTS  # noqa: E402
+from eha_ros.physics import default_params, params_to_dict  # noqa: E402
+from eha_ros.physics.bench import fluid_at, load_bench  # noqa: E402
+from eha_ros.physics.maps import WEAR_RANGES  # noqa: E402
+from eha_ros.physics.tolerances import DRAWN, load_tolerances  # noqa: E402
+from eha_ros.training.preflight import inner_service  # noqa: E402
+
+#: The valve fit's items: (estimate column, deviation column, plant parameter, range).
+VALVE_ITEMS = (
+    ('est_radial_clearance_m', 'est_radial_clearance_std_m', 'radial_clearance_m',
+     WEAR_RANGES['radial_clearance_m']),
+    ('est_overlap_m', 'est_overlap_std_m', 'overlap_supply_m', WEAR_RANGES['overlap_m']),
+    ('est_valve_degradation', 'est_valve_degradation_std', 'valve_degradation', (0.0, 0.2)),
+    ('est_leakage_coeff_m3_s_pa', 'est_leakage_coeff_m3_s_pa_std', 'leakage_coeff_m3_s_pa',
+     (1e-13, 1e-12)))
+#: The pre-flight network's items, the same way.
+PREFLIGHT_ITEMS = tuple((f'est_{f.name}', f'std_{f.name}', f.name, (f.lo, f.hi))
+                        for f in FAULTS)
+TESTS = {'valve_test': VALVE_ITEMS, 'preflight': PREFLIGHT_ITEMS}
+CONDITIONS = ('supply_pressure_pa', 'return_pressure_pa', 'fluid_temperature_k')
+NEGLIGIBLE_SIGMA = 0.2
+NOISE_SEEDS = (0, 1)
+
+
+def factors(test: str) -> list:
+    """``[(name, kind, payload)]`` of the test's Morris factors (module docstring)."""
+    tol = load_tolerances()
+    out = [(n, 'tolerance', t) for n, t in tol.items() if t.klass in DRAWN]
+    service = inner_service(load_bench())
+    out += [(n, 'condition', service[n]) for n in CONDITIONS]
+    other = PREFLIGHT_ITEMS if test == 'valve_test' else VALVE_ITEMS
+    out += [(param, 'item', rng) for _, _, param, rng in other]
+    out.append(('noise_seed', 'seed', NOISE_SEEDS))
+    return out
+
+
+def case_of(fs: list, u: np.ndarray, bench) -> dict:
+    """The plant changes and seed of one design point ``u`` in [0, 1]^k."""
+    p0 = default_params()
+    c, ratios, seed = {}, [], 0
+    for (name, kind, payload), x in zip(fs, u):
+        if kind == 'tolerance':
+            if payload.ratio_of:
+                ratios.append((name, payload, x))
+                continue
+            lo, hi = payload.bounds(p0)
+            c[name] = float(lo + x * (hi - lo))
+        elif kind == 'condition':
+            v = float(payload[0] + x * (payload[1] - payload[0]))
+            c.update(fluid_at(v, bench) if name == 'fluid_temperature_k' else {name: v})
+        elif kind == 'item':
+            c[name] = float(payload[0] + x * (payload[1] - payload[0]))
+        else:
+            seed = int(payload[int(x >= 0.5)])
+    for name, t, x in ratios:   # dynamic frictions on their (possibly drawn) breakaway values
+        ref = c.get(t.ratio_of, getattr(p0, t.ratio_of))
+        c[name] = float((t.lo + x * (t.hi - t.lo)) * ref)
+    if 'overlap_supply_m' in c:
+        c['overlap_return_m'] = c['overlap_supply_m']
+    c['seed'] = seed
+    return c
+
+
+def run_design(test: str, cases: list, workers: int):
+    """The sweep's rows of ``cases`` in order."""
+    from eha_ros.sweep import parse_spec, read_dataset, run_sweep
+    items = TESTS[test]
+    metrics = [m for e, s, _, _ in items for m in (e, s)] + ['mismatch']
+    if test == 'valve_test':
+        raw = {'procedure': 'valve_test', 'valve_test_procedure': 'settled'}
+    else:
+        raw = {'procedure': 'preflight_check', 'noise': True}
+        metrics.append('ood_score')
+    raw.update(models=['hf'], metrics=metrics, cases=cases)
+    spec = parse_spec(raw, source=f'screening ({test})', base=params_to_dict(default_params()))
+    ids = [pt.cases[0].case_id for pt in spec.points()]
+    with tempfile.TemporaryDirectory(prefix='eha-screening-') as tmp:
+        run_sweep(spec, Path(tmp) / 'sweep', workers=workers, in_process=workers <= 1,
+                  progress=False)
+        rows = {r['case_id']: r for r in read_dataset(Path(tmp) / 'sweep').to_pylist()}
+    return [rows[i] for i in ids]
+
+
+def screen(test: str, trajectories: int, seed: int, workers: int) -> dict:
+    """The Morris figures of one test (module docstring)."""
+    from SALib.analyze import morris as morris_analyze
+    from SALib.sample import morris as morris_sample
+    t0 = time.perf_counter()
+    fs = factors(test)
+    k = len(fs)
+    problem = {'num_vars': k, 'names': [f[0] for f in fs], 'bounds': [[0.0, 1.0]] * k}
+    x = morris_sample.sample(problem, trajectories, num_levels=4, seed=seed)
+    bench = load_bench()
+    rows = run_design(test, [case_of(fs, u, bench) for u in x], workers)
+    ok = np.array([r['status'] == 'ok' for r in rows])
+    per_traj = ok.reshape(trajectories, k + 1).all(axis=1)
+    if per_traj.sum() < 2:
+        raise SystemExit(f'sensitivity: {test}: fewer than two complete trajectories '
+                         f'({int(ok.sum())} of {ok.size} cases ran)')
+    keep = np.repeat(per_traj, k + 1)
+    xs = x[keep]
+    out = {'factors': k, 'trajectories': trajectories,
+           'trajectories_complete': int(per_traj.sum()), 'cases': int(ok.size),
+           'cases_failed': int((~ok).sum()),
+           'first_failure': next((r['error'] for r in rows if r['status'] != 'ok'), None),
+           'mismatch_share': round(float(np.mean([bool(r['mismatch']) for r, o in
+                                                  zip(rows, ok) if o])), 3),
+           'estimates': {}}
+    largest = {n: 0.0 for n in problem['names']}
+    for est, std, param, _ in TESTS[test]:
+        y = np.array([r[est] for r, kk in zip(rows, keep) if kk], dtype=float)
+        s_ref = float(np.median([r[std] for r, kk in zip(rows, keep) if kk]))
+        res = morris_analyze.analyze(problem, xs, y, num_levels=4, seed=seed)
+        table = {}
+        for j, name in enumerate(problem['names']):
+            table[name] = {'mu_star_sigma': round(float(res['mu_star'][j]) / s_ref, 4),
+                           'mu_star_conf_sigma': round(float(res['mu_star_conf'][j]) / s_ref,
+                                                       4),
+                           'sigma_sigma': round(float(res['sigma'][j]) / s_ref, 4)}
+            largest[name] = max(largest[name], table[name]['mu_star_sigma'])
+        out['estimates'][param] = {'stated_std_median': s_ref, 'effects': table}
+    out['largest_effect_sigma'] = {n: round(v, 4) for n, v in
+                                   sorted(largest.items(), key=lambda kv: -kv[1])}
+    out['wall_s'] = round(time.perf_counter() - t0, 1)
+    return out
+
+
+def classify(result: dict) -> dict:
+    """``{parameter: (largest effect over the tests, class by the rule)}`` of the drawn
+    parameters, with the class ``config/tolerances.yaml`` gives them."""
+    tol = load_tolerances()
+    out = {}
+    for name, t in tol.items():
+        if t.klass not in DRAWN:
+            continue
+        eff = max(r['largest_effect_sigma'].get(name, 0.0) for r in result['tests'].values())
+        out[name] = {'largest_effect_sigma': eff, 'class': t.klass,
+                     'by_the_rule': 'negligible' if eff < NEGLIGIBLE_SIGMA else 'nuisance'}
+    return out
+
+
+def write_report(result: dict, folder: Path) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / 'screening.json').write_text(json.dumps(result, indent=1) + '\n')
+    cls = result['classification']
+    tests = list(result['tests'])
+    lines = ['# Sensitivity screening (Morris, SALib)', '',
+             f'`python bench/sensitivity.py` ({result["trajectories"]} trajectories, seed '
+             f'{result["seed"]}; load {result["load_before"]} before, '
+             f'{result["load_after"]} after). Largest effect of each parameter\'s range on any '
+             'estimate of the test, in units of that estimate\'s stated deviation '
+             f'(negligible: below {NEGLIGIBLE_SIGMA}).', '',
+             '| parameter | class | ' + ' | '.join(tests) + ' |',
+             '| --- | --- | ' + ' | '.join('---:' for _ in tests) + ' |']
+    names = sorted(set().union(*(r['largest_effect_sigma'] for r in result['tests'].values())),
+                   key=lambda n: -max(r['largest_effect_sigma'].get(n, 0.0)
+                                      for r in result['tests'].values()))
+    tol = load_tolerances()
+    for n in names:
+        klass = cls[n]['class'] if n in cls else (
+            tol[n].klass if n in tol else 'yardstick' if n == 'noise_seed' else 'condition')
+        lines.append(f'| `{n}` | {klass} | ' + ' | '.join(
+            f'{result["tests"][t]["largest_effect_sigma"].get(n, float("nan")):.3g}'
+            for t in tests) + ' |')
+    (folder / 'screening.md').write_text('\n'.join(lines) + '\n')
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(8, 0.22 * len(names) + 1.5))
+    yy = np.arange(len(names))
+    for j, t in enumerate(tests):
+        v = [max(result['tests'][t]['largest_effect_sigma'].get(n, 0.0), 1e-4) for n in names]
+        ax.barh(yy + 0.4 * j - 0.2, v, height=0.4, label=t)
+    ax.axvline(NEGLIGIBLE_SIGMA, color='k', lw=0.8, ls='--', label='negligible below')
+    ax.set_xscale('log')
+    ax.set_yticks(yy, names, fontsize=7)
+    ax.invert_yaxis()
+    ax.set_xlabel('largest Morris effect over the estimates [stated sigma]')
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(folder / 'screening.png', dpi=100)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--tests', default='valve_test,preflight')
+    ap.add_argument('--trajectories', type=int, default=8)
+    ap.add_argument('--workers', type=int, default=2, help='sweep workers (1: in process)')
+    ap.add_argument('--seed', type=int, default=2027)
+    ap.add_argument('--out', type=Path, default=None, help='report folder (docs/screening)')
+    ap.add_argument('--smoke', action='store_true', help='a tiny design: a check, no figure')
+    args = ap.parse_args(argv)
+    tests = [t for t in args.tests.split(',') if t]
+    unknown = [t for t in tests if t not in TESTS]
+    if unknown or not tests:
+        ap.error(f'--tests: unknown {", ".join(unknown) or "(none)"}; known: {", ".join(TESTS)}')
+    if args.trajectories < 2 or args.workers < 1:
+        ap.error('--trajectories must be at least 2 and --workers at least 1')
+    scratch = None
+    if args.smoke:
+        tests, args.trajectories, args.workers = ['preflight'], 2, 1
+        if args.out is None:
+            args.out = Path(scratch := tempfile.mkdtemp(prefix='eha-screening-'))
+    out = args.out or Path('docs/screening')
+    result = {'benchmark': 'sensitivity', 'smoke': args.smoke, 'method': 'morris',
+              'trajectories': args.trajectories, 'seed': args.seed, 'levels': 4,
+              'load_before': [round(v, 2) for v in os.getloadavg()], 'tests': {}}
+    try:
+        for t in tests:
+            result['tests'][t] = screen(t, args.trajectories, args.seed, args.workers)
+        result['classification'] = classify(result)
+        result['load_after'] = [round(v, 2) for v in os.getloadavg()]
+        write_report(result, out)
+    finally:
+        if scratch:
+            shutil.rmtree(scratch)
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

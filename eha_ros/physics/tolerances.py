@@ -1,0 +1,116 @@
+"""Every plant parameter classified for the diagnosis of a fleet: ``config/tolerances.yaml``.
+
+Each parameter of :data:`eha_ros.physics.params.SPECS` has one class (:data:`CLASSES`): a
+condition the test bench measures, an item a test estimates, a nuisance drawn over its range, a
+negligible one (the shipped screening shows its whole range moves no estimate by 0.2 of its
+stated deviation), or a setting known exactly.  Nuisances and negligibles carry the range a real
+unit or its service spans - absolute, a factor on the nominal value (``relative``), or a factor
+on another parameter's value (``ratio_of``, the dynamic frictions on their breakaway ones) - and
+every entry its reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+from .params import SPEC_BY_NAME, SPECS, ParameterError, PlantParams, config_dir, read_yaml
+
+__all__ = ['CLASSES', 'DRAWN', 'Tolerance', 'load_tolerances', 'draw_value']
+
+#: The classes, in the order of the file's header.
+CLASSES = ('measured', 'estimated', 'nuisance', 'negligible', 'setting')
+#: The classes that carry a range and are drawn by the screening and the fleet sets.
+DRAWN = ('nuisance', 'negligible')
+
+
+@dataclasses.dataclass(frozen=True)
+class Tolerance:
+    """One parameter's class, range and reason (see the module)."""
+
+    name: str
+    klass: str
+    reason: str
+    lo: float | None = None
+    hi: float | None = None
+    relative: bool = False
+    ratio_of: str | None = None
+    trained: bool = False
+
+    def bounds(self, params: PlantParams) -> tuple[float, float]:
+        """The absolute ``(lo, hi)`` of the parameter about ``params`` (for ``ratio_of``: at
+        the other parameter's value in ``params``)."""
+        if self.klass not in DRAWN:
+            raise ParameterError(f'tolerances: {self.name} is {self.klass}: it has no range')
+        if self.ratio_of:
+            ref = getattr(params, self.ratio_of)
+        elif self.relative:
+            ref = getattr(params, self.name)
+        else:
+            return self.lo, self.hi
+        return self.lo * ref, self.hi * ref
+
+
+def draw_value(t: Tolerance, u: float, params: PlantParams) -> float:
+    """The value at ``u`` in [0, 1] of ``t``'s range about ``params`` (linear)."""
+    lo, hi = t.bounds(params)
+    return lo + u * (hi - lo)
+
+
+def load_tolerances(path=None) -> dict:
+    """``{name: Tolerance}`` of every plant parameter, in schema order.  Refused with a
+    one-line :class:`ParameterError`: a parameter missing or unknown, an unknown class, a
+    drawn class without a range (or a range outside the parameter's physical limits at
+    nominal), a range on a class that has none."""
+    path = path or config_dir() / 'tolerances.yaml'
+    return _load(str(path))
+
+
+@functools.lru_cache(maxsize=4)
+def _load(path: str) -> dict:
+    from .params import default_params, replace
+    doc = read_yaml(path, 'tolerances', 'parameter -> {class, range, reason}')
+    unknown = sorted(set(doc) - set(SPEC_BY_NAME))
+    if unknown:
+        raise ParameterError(f'{path}: unknown plant parameter {unknown[0]}')
+    missing = [s.name for s in SPECS if s.name not in doc]
+    if missing:
+        raise ParameterError(f'{path}: plant parameter {missing[0]} has no class '
+                             f'(one of {", ".join(CLASSES)})')
+    p0 = default_params()
+    out = {}
+    for spec in SPECS:
+        e, where = doc[spec.name], f'{path}: {spec.name}'
+        if not isinstance(e, dict):
+            raise ParameterError(f'{where}: expected a mapping with class and reason')
+        klass = e.get('class')
+        if klass not in CLASSES:
+            raise ParameterError(f'{where}: class {klass!r} is not one of {", ".join(CLASSES)}')
+        reason = str(e.get('reason') or '').strip()
+        if not reason:
+            raise ParameterError(f'{where}: no reason')
+        has_range = 'lo' in e or 'hi' in e
+        if klass not in DRAWN:
+            if has_range:
+                raise ParameterError(f'{where}: a {klass} parameter has no range')
+            out[spec.name] = Tolerance(spec.name, klass, reason)
+            continue
+        try:
+            lo, hi = float(e['lo']), float(e['hi'])
+        except (KeyError, TypeError, ValueError):
+            raise ParameterError(f'{where}: a {klass} parameter needs numbers lo and hi'
+                                 ) from None
+        ratio_of = e.get('ratio_of')
+        if ratio_of is not None and ratio_of not in SPEC_BY_NAME:
+            raise ParameterError(f'{where}: ratio_of names no plant parameter: {ratio_of}')
+        if not lo <= hi:
+            raise ParameterError(f'{where}: needs lo <= hi')
+        t = Tolerance(spec.name, klass, reason, lo, hi, bool(e.get('relative', False)),
+                      ratio_of, bool(e.get('trained', False)))
+        for v in t.bounds(p0):   # both ends must be physical about the nominal valve
+            try:
+                replace(p0, **{spec.name: v})
+            except ParameterError as exc:
+                raise ParameterError(f'{where}: range end {v:g} refused: {exc}') from None
+        out[spec.name] = t
+    return out
