@@ -13,12 +13,27 @@ second and the ratio to hf's at 1 us.
 
     python bench/plant_rtf.py [--duration 1.0] [--repeat 3] [--models dlut,dnn,dga,lut,...]
         [--large-dts 2e-6,5e-6]
+
+``--against REV`` instead measures hf at dt = 1 us (both controller cases, both commands) of
+this checkout and of the git revision ``REV`` side by side, in one run: ``REV`` is checked out
+into a temporary worktree and each tree is timed in a fresh process of its own (its own
+``eha_ros`` source and ``config/``, ``NUMBA_NUM_THREADS=1``), the two alternating for
+``--rounds`` rounds (best of ``--repeat`` runs in each round, after a warm-up that compiles);
+per case the best real-time factor of each tree over all rounds and the ratio (this checkout
+over ``REV``; above 1: faster now), each round's figures and the load averages.
+
+    python bench/plant_rtf.py --against d4243cf [--rounds 3] [--repeat 5] [--duration 0.5]
 """
 
 import argparse
 import json
 import os
+from pathlib import Path
 import platform
+import shutil
+import subprocess
+import sys
+import tempfile
 import time
 
 os.environ.setdefault('NUMBA_NUM_THREADS', '1')
@@ -28,15 +43,102 @@ from eha_ros.physics import default_params, simulate  # noqa: E402
 from eha_ros.surrogates.registry import load_surrogate  # noqa: E402
 
 
+ROOT = Path(__file__).resolve().parents[1]
+#: The cases ``--against`` times: (scenario, label, controller period [s] or None).
+AGAINST_CASES = (('step_0p1', 'controller_every_step', None),
+                 ('step_0p1', 'controller_1khz', 1e-3),
+                 ('sine_0p1_10pi', 'controller_every_step', None),
+                 ('sine_0p1_10pi', 'controller_1khz', 1e-3))
+#: What a tree's process runs (only ``simulate`` and ``default_params``, which every revision
+#: has): argv = duration, repeat, cases as JSON; prints ``{case: best wall s}``.
+_TIMER = '''
+import json, sys
+from eha_ros.physics import default_params, simulate
+duration, repeat, cases = float(sys.argv[1]), int(sys.argv[2]), json.loads(sys.argv[3])
+p = default_params()
+out = {}
+for scenario, label, period in cases:
+    simulate(p, scenario, duration_s=2e-3, dt_s=1e-6, controller_period_s=period)  # compile
+    out[scenario + '/' + label] = min(
+        simulate(p, scenario, duration_s=duration, dt_s=1e-6,
+                 controller_period_s=period).wall_time_s for _ in range(repeat))
+print(json.dumps(out))
+'''
+
+
+def _time_tree(tree: Path, duration: float, repeat: int, cases) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(tree), EHA_ROS_CONFIG_DIR=str(tree / 'config'),
+               NUMBA_NUM_THREADS='1')
+    r = subprocess.run([sys.executable, '-c', _TIMER, str(duration), str(repeat),
+                        json.dumps(cases)], cwd=tree, env=env, capture_output=True, text=True)
+    if r.returncode:
+        last = (r.stderr.strip().splitlines() or [f'exit {r.returncode}'])[-1]
+        sys.exit(f'plant_rtf: timing {tree} failed: {last}')
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def against(rev: str, rounds: int, repeat: int, duration: float) -> dict:
+    """This checkout against ``rev``, side by side (module docstring)."""
+    try:
+        sha = subprocess.run(['git', '-C', str(ROOT), 'rev-parse', '--verify',
+                              f'{rev}^{{commit}}'], capture_output=True, text=True,
+                             check=True).stdout.strip()
+    except subprocess.CalledProcessError:
+        sys.exit(f'plant_rtf: --against {rev}: not a revision of this repository')
+    tmp = Path(tempfile.mkdtemp(prefix='eha-rtf-against-'))
+    tree = tmp / 'tree'
+    subprocess.run(['git', '-C', str(ROOT), 'worktree', 'add', '--detach', str(tree), sha],
+                   capture_output=True, check=True)
+    out = {'benchmark': 'plant_rtf_against', 'against': rev, 'against_commit': sha,
+           'checkout_commit': subprocess.run(['git', '-C', str(ROOT), 'rev-parse', 'HEAD'],
+                                             capture_output=True, text=True).stdout.strip(),
+           'checkout_dirty': bool(subprocess.run(
+               ['git', '-C', str(ROOT), 'status', '--porcelain', '--untracked-files=no'],
+               capture_output=True, text=True).stdout.strip()),
+           'dt_s': 1e-6, 'simulated_s': duration, 'repeat': repeat, 'rounds': [],
+           'load_before': [round(v, 2) for v in os.getloadavg()]}
+    cases = [list(c) for c in AGAINST_CASES]
+    try:
+        for k in range(rounds):
+            # alternate which tree goes first, so neither always runs on a warmer machine
+            order = (('checkout', ROOT), ('against', tree))[::1 if k % 2 == 0 else -1]
+            out['rounds'].append({name: _time_tree(t, duration, repeat, cases)
+                                  for name, t in order})
+    finally:
+        subprocess.run(['git', '-C', str(ROOT), 'worktree', 'remove', '--force', str(tree)],
+                       capture_output=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+    out['cases'] = {}
+    for key in out['rounds'][0]['checkout']:
+        now = min(r['checkout'][key] for r in out['rounds'])
+        then = min(r['against'][key] for r in out['rounds'])
+        out['cases'][key] = {'real_time_factor': round(duration / now, 2),
+                             'real_time_factor_against': round(duration / then, 2),
+                             'ratio': round(then / now, 3)}
+    out['load_after'] = [round(v, 2) for v in os.getloadavg()]
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument('--duration', type=float, default=1.0)
     ap.add_argument('--repeat', type=int, default=3)
     ap.add_argument('--models', default=','.join(m for m in MODELS if m != 'hf'))
     ap.add_argument('--large-dts', default='2e-6,5e-6')
+    ap.add_argument('--against', metavar='REV', default=None,
+                    help='time hf of this checkout against git revision REV, side by side')
+    ap.add_argument('--rounds', type=int, default=3, help='alternations with --against')
     ap.add_argument('--smoke', action='store_true',
                     help='the same code on a tiny case (10 ms, one repeat, dlut and lut): a check')
     args = ap.parse_args()
+    if args.against is not None:
+        if args.rounds < 1 or args.repeat < 1 or args.duration <= 0:
+            ap.error('--rounds and --repeat must be at least 1 and --duration positive')
+        if args.smoke:
+            args.rounds, args.repeat, args.duration = 1, 1, 0.01
+        print(json.dumps({**against(args.against, args.rounds, args.repeat, args.duration),
+                          'smoke': args.smoke}))
+        return
     if args.smoke:
         args.duration, args.repeat, args.large_dts = 0.01, 1, '5e-6'
         if args.models == ap.get_default('models'):

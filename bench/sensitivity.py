@@ -8,8 +8,14 @@ the service envelope less the sensors' errors (the fluid through its temperature
 test's estimated items over their estimators' ranges, and a yardstick: ``noise_seed`` (the
 torque-motor noise and sensor seed, two values), whose effect is what another noise seed does.
 The test's own items stay at the nominal valve, so an estimate's change is its error's change.
+A parameter the test's model does not contain (the coil noise in the valve test, which imposes
+the spool position) is listed with effect 0 and the reason (``not_in_model``).
 Every case runs through the sweep engine (``eha_ros.sweep``), one Morris design per test
 (``--trajectories`` trajectories of ``k + 1`` points on a 4-level grid, seeded).
+
+Beside it, one at a time: each factor alone at either end of its range, every other parameter
+nominal (the nominal valve's own deviation as the unit), and whether an end is flagged as a
+mismatch.
 
 Per test and estimate: ``mu_star`` (mean absolute elementary effect: about what the whole
 range does), its 95 % bootstrap half-width and ``sigma`` (spread of the effects: interaction
@@ -19,8 +25,13 @@ rule of ``config/tolerances.yaml``: ``negligible`` is a largest effect under 0.2
 test cannot assess (an error, too few settled points) drop their trajectory; the count is
 reported.
 
-Writes ``screening.json`` (the figures), ``screening.md`` (the table) and ``screening.png``
-(largest effect per parameter) into ``--out`` (default ``docs/screening``), and prints the JSON.
+The unit of an effect is the median deviation the estimator states on the design's cases it
+does not flag as a mismatch (a mismatch widens the deviation to the item's range); the median
+over every case is listed beside it.
+
+Writes ``screening.json`` (the figures), ``screening.md`` (the table), ``screening.png``
+(largest effect per parameter) and ``design_<test>.npz`` (the design and its rows) into
+``--out`` (default ``docs/screening``), and prints the JSON.
 
     python bench/sensitivity.py [--tests valve_test,preflight] [--trajectories 8]
         [--workers 2] [--seed 2027] [--out docs/screening] [--smoke]
@@ -62,6 +73,10 @@ PREFLIGHT_ITEMS = tuple((f'est_{f.name}', f'std_{f.name}', f.name, (f.lo, f.hi))
                         for f in FAULTS)
 TESTS = {'valve_test': VALVE_ITEMS, 'preflight': PREFLIGHT_ITEMS}
 CONDITIONS = ('supply_pressure_pa', 'return_pressure_pa', 'fluid_temperature_k')
+#: Parameters a test's model does not contain (effect 0 by construction), with the reason.
+NOT_IN_MODEL = {'valve_test': {
+    'noise_std_a': 'the valve test imposes the spool position: no coil current, no noise',
+    'noise_sample_time_s': 'the valve test imposes the spool position: no coil current'}}
 NEGLIGIBLE_SIGMA = 0.2
 NOISE_SEEDS = (0, 1)
 
@@ -69,7 +84,8 @@ NOISE_SEEDS = (0, 1)
 def factors(test: str) -> list:
     """``[(name, kind, payload)]`` of the test's Morris factors (module docstring)."""
     tol = load_tolerances()
-    out = [(n, 'tolerance', t) for n, t in tol.items() if t.klass in DRAWN]
+    out = [(n, 'tolerance', t) for n, t in tol.items()
+           if t.klass in DRAWN and n not in NOT_IN_MODEL.get(test, {})]
     service = inner_service(load_bench())
     out += [(n, 'condition', service[n]) for n in CONDITIONS]
     other = PREFLIGHT_ITEMS if test == 'valve_test' else VALVE_ITEMS
@@ -110,12 +126,11 @@ def run_design(test: str, cases: list, workers: int):
     from eha_ros.sweep import parse_spec, read_dataset, run_sweep
     items = TESTS[test]
     metrics = [m for e, s, _, _ in items for m in (e, s)] + ['mismatch']
-    if test == 'valve_test':
+    if test == 'valve_test':   # every metric of the procedure (it writes them all)
         raw = {'procedure': 'valve_test', 'valve_test_procedure': 'settled'}
     else:
-        raw = {'procedure': 'preflight_check', 'noise': True}
-        metrics.append('ood_score')
-    raw.update(models=['hf'], metrics=metrics, cases=cases)
+        raw = {'procedure': 'preflight_check', 'noise': True, 'metrics': metrics + ['ood_score']}
+    raw.update(models=['hf'], cases=cases)
     spec = parse_spec(raw, source=f'screening ({test})', base=params_to_dict(default_params()))
     ids = [pt.cases[0].case_id for pt in spec.points()]
     with tempfile.TemporaryDirectory(prefix='eha-screening-') as tmp:
@@ -125,7 +140,8 @@ def run_design(test: str, cases: list, workers: int):
     return [rows[i] for i in ids]
 
 
-def screen(test: str, trajectories: int, seed: int, workers: int) -> dict:
+def screen(test: str, trajectories: int, seed: int, workers: int,
+           keep_dir: Path | None = None) -> dict:
     """The Morris figures of one test (module docstring)."""
     from SALib.analyze import morris as morris_analyze
     from SALib.sample import morris as morris_sample
@@ -151,9 +167,17 @@ def screen(test: str, trajectories: int, seed: int, workers: int) -> dict:
                                                   zip(rows, ok) if o])), 3),
            'estimates': {}}
     largest = {n: 0.0 for n in problem['names']}
+    out['not_in_model'] = NOT_IN_MODEL.get(test, {})
+    kept = [r for r, kk in zip(rows, keep) if kk]
+    # the unit: the deviation the estimator states where it does assess (a mismatch widens
+    # its deviation to the item's range, which would shrink every effect)
+    assessed = [r for r in kept if not r['mismatch']]
+    out['stated_std_from'] = ('cases not flagged as mismatch' if len(assessed) >= 5 else
+                              'every case (fewer than 5 not flagged as mismatch)')
+    ref_rows = assessed if len(assessed) >= 5 else kept
     for est, std, param, _ in TESTS[test]:
-        y = np.array([r[est] for r, kk in zip(rows, keep) if kk], dtype=float)
-        s_ref = float(np.median([r[std] for r, kk in zip(rows, keep) if kk]))
+        y = np.array([r[est] for r in kept], dtype=float)
+        s_ref = float(np.median([r[std] for r in ref_rows]))
         res = morris_analyze.analyze(problem, xs, y, num_levels=4, seed=seed)
         table = {}
         for j, name in enumerate(problem['names']):
@@ -162,22 +186,72 @@ def screen(test: str, trajectories: int, seed: int, workers: int) -> dict:
                                                        4),
                            'sigma_sigma': round(float(res['sigma'][j]) / s_ref, 4)}
             largest[name] = max(largest[name], table[name]['mu_star_sigma'])
-        out['estimates'][param] = {'stated_std_median': s_ref, 'effects': table}
+        out['estimates'][param] = {
+            'stated_std_median': s_ref,
+            'stated_std_median_every_case': float(np.median([r[std] for r in kept])),
+            'effects': table}
+    if keep_dir is not None:   # the design and its rows, to analyse again without running
+        np.savez_compressed(keep_dir / f'design_{test}.npz', x=x, names=problem['names'],
+                            rows=json.dumps([{k: r.get(k) for k in ('status', 'mismatch') + tuple(
+                                c for e, sd, _, _ in TESTS[test] for c in (e, sd))}
+                                for r in rows]))
+    largest.update({n: 0.0 for n in out['not_in_model']})
     out['largest_effect_sigma'] = {n: round(v, 4) for n, v in
                                    sorted(largest.items(), key=lambda kv: -kv[1])}
     out['wall_s'] = round(time.perf_counter() - t0, 1)
     return out
 
 
+def one_at_a_time(test: str, workers: int) -> dict:
+    """Each factor alone at the two ends of its range, every other parameter nominal: per
+    estimate and factor the larger change from the nominal valve's estimate in units of the
+    nominal valve's stated deviation, and whether either end is flagged as a mismatch."""
+    fs = [f for f in factors(test) if f[1] != 'seed']
+    bench = load_bench()
+    cases = [{'seed': 0}] + [case_of([f], [end], bench) for f in fs for end in (0.0, 1.0)]
+    # an end at the nominal value is the nominal case: every distinct case runs once
+    nominal = params_to_dict(default_params())
+    keys = [json.dumps({k: v for k, v in c.items() if k == 'seed' or v != nominal[k]},
+                       sort_keys=True) for c in cases]
+    unique = list(dict.fromkeys(keys))
+    ran = dict(zip(unique, run_design(test, [json.loads(k) for k in unique], workers)))
+    rows = [ran[k] for k in keys]
+    if rows[0]['status'] != 'ok':
+        raise SystemExit(f'sensitivity: {test}: the nominal valve did not run: '
+                         f'{rows[0]["error"]}')
+    out = {'nominal_mismatch': bool(rows[0]['mismatch']), 'estimates': {}, 'largest': {}}
+    for est, std, param, _ in TESTS[test]:
+        y0, s0 = rows[0][est], rows[0][std]
+        table = {}
+        for j, (name, _, _) in enumerate(fs):
+            lo, hi = rows[1 + 2 * j], rows[2 + 2 * j]
+            if lo['status'] != 'ok' or hi['status'] != 'ok':
+                table[name] = {'error': (lo if lo['status'] != 'ok' else hi)['error']}
+                continue
+            table[name] = {'change_sigma': round(max(abs(lo[est] - y0), abs(hi[est] - y0)) / s0,
+                                                 4),
+                           'mismatch_at_an_end': bool(lo['mismatch'] or hi['mismatch'])}
+            out['largest'][name] = max(out['largest'].get(name, 0.0),
+                                       table[name]['change_sigma'])
+        out['estimates'][param] = {'nominal_estimate': y0, 'nominal_std': s0, 'effects': table}
+    out['largest'] = dict(sorted(out['largest'].items(), key=lambda kv: -kv[1]))
+    out['flagged_at_an_end'] = sorted({n for e in out['estimates'].values()
+                                       for n, v in e['effects'].items()
+                                       if v.get('mismatch_at_an_end')})
+    return out
+
+
 def classify(result: dict) -> dict:
-    """``{parameter: (largest effect over the tests, class by the rule)}`` of the drawn
-    parameters, with the class ``config/tolerances.yaml`` gives them."""
+    """``{parameter: (largest effect over the tests, Morris and one at a time, class by the
+    rule)}`` of the drawn parameters, with the class ``config/tolerances.yaml`` gives them."""
     tol = load_tolerances()
     out = {}
     for name, t in tol.items():
         if t.klass not in DRAWN:
             continue
-        eff = max(r['largest_effect_sigma'].get(name, 0.0) for r in result['tests'].values())
+        eff = max(max(r['largest_effect_sigma'].get(name, 0.0),
+                      r.get('one_at_a_time', {}).get('largest', {}).get(name, 0.0))
+                  for r in result['tests'].values())
         out[name] = {'largest_effect_sigma': eff, 'class': t.klass,
                      'by_the_rule': 'negligible' if eff < NEGLIGIBLE_SIGMA else 'nuisance'}
     return out
@@ -194,8 +268,11 @@ def write_report(result: dict, folder: Path) -> None:
              f'{result["load_after"]} after). Largest effect of each parameter\'s range on any '
              'estimate of the test, in units of that estimate\'s stated deviation '
              f'(negligible: below {NEGLIGIBLE_SIGMA}).', '',
-             '| parameter | class | ' + ' | '.join(tests) + ' |',
-             '| --- | --- | ' + ' | '.join('---:' for _ in tests) + ' |']
+             'Morris: over the design (every parameter drawn at once); alone: the parameter '
+             'alone at either end of its range, the rest nominal.', '',
+             '| parameter | class | ' + ' | '.join(f'{t} Morris | {t} alone' for t in tests)
+             + ' |',
+             '| --- | --- | ' + ' | '.join('---: | ---:' for _ in tests) + ' |']
     names = sorted(set().union(*(r['largest_effect_sigma'] for r in result['tests'].values())),
                    key=lambda n: -max(r['largest_effect_sigma'].get(n, 0.0)
                                       for r in result['tests'].values()))
@@ -203,9 +280,15 @@ def write_report(result: dict, folder: Path) -> None:
     for n in names:
         klass = cls[n]['class'] if n in cls else (
             tol[n].klass if n in tol else 'yardstick' if n == 'noise_seed' else 'condition')
-        lines.append(f'| `{n}` | {klass} | ' + ' | '.join(
-            f'{result["tests"][t]["largest_effect_sigma"].get(n, float("nan")):.3g}'
-            for t in tests) + ' |')
+        cells = []
+        for t in tests:
+            r = result['tests'][t]
+            v = r['largest_effect_sigma'].get(n)
+            cells.append('held (its own item)' if v is None else
+                         '0 (not in its model)' if n in r['not_in_model'] else f'{v:.3g}')
+            alone = r.get('one_at_a_time', {}).get('largest', {}).get(n)
+            cells.append('-' if alone is None else f'{alone:.3g}')
+        lines.append(f'| `{n}` | {klass} | ' + ' | '.join(cells) + ' |')
     (folder / 'screening.md').write_text('\n'.join(lines) + '\n')
     import matplotlib
     matplotlib.use('Agg')
@@ -252,7 +335,9 @@ def main(argv=None) -> int:
               'load_before': [round(v, 2) for v in os.getloadavg()], 'tests': {}}
     try:
         for t in tests:
-            result['tests'][t] = screen(t, args.trajectories, args.seed, args.workers)
+            out.mkdir(parents=True, exist_ok=True)
+            result['tests'][t] = screen(t, args.trajectories, args.seed, args.workers, out)
+            result['tests'][t]['one_at_a_time'] = one_at_a_time(t, args.workers)
         result['classification'] = classify(result)
         result['load_after'] = [round(v, 2) for v in os.getloadavg()]
         write_report(result, out)

@@ -141,3 +141,22 @@ def test_pins_parser():
         'foo-bar': '1.2', 'ros-rclpy': '9.1.2'}
     with pytest.raises(AssertionError):
         pins(['a==1', 'A==2'])
+
+
+def test_plant_rtf_against_a_revision_times_both_trees_side_by_side(tmp_path):
+    """``--against REV`` (here HEAD, in a worktree of its own) prints a ratio per case from
+    both trees' own timings, and leaves no worktree behind."""
+    r = subprocess.run([sys.executable, str(BENCH_DIR / 'plant_rtf.py'), '--against', 'HEAD',
+                        '--smoke'], cwd=tmp_path, capture_output=True, text=True,
+                       timeout=SMOKE_TIMEOUT_S)
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = last_json(r.stdout)
+    assert out['smoke'] is True and len(out['rounds']) == 1
+    assert set(out['rounds'][0]) == {'checkout', 'against'}
+    assert len(out['cases']) == 4 and all(v['ratio'] > 0 for v in out['cases'].values())
+    trees = subprocess.run(['git', '-C', str(ROOT), 'worktree', 'list'], capture_output=True,
+                           text=True).stdout
+    assert 'eha-rtf-against' not in trees
+    bad = subprocess.run([sys.executable, str(BENCH_DIR / 'plant_rtf.py'), '--against',
+                          'no-such-rev'], cwd=tmp_path, capture_output=True, text=True)
+    assert bad.returncode != 0 and 'no-such-rev' in bad.stderr.strip().splitlines()[-1]
