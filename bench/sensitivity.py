@@ -36,8 +36,8 @@ Writes ``screening.json`` (the figures), ``screening.md`` (the table), ``screeni
     python bench/sensitivity.py [--tests valve_test,preflight] [--trajectories 8]
         [--workers 2] [--seed 2027] [--out docs/screening] [--smoke]
 
-``--smoke``: two trajectories of the pre-flight check in process, written to a temporary
-folder: a check that the bench runs, no figure.
+``--smoke``: two trajectories of the pre-flight check over six factors (one of each kind), in
+process, written to a temporary folder: a check that the bench runs, no figure.
 """
 
 import argparse
@@ -78,11 +78,16 @@ NOT_IN_MODEL = {'valve_test': {
     'noise_std_a': 'the valve test imposes the spool position: no coil current, no noise',
     'noise_sample_time_s': 'the valve test imposes the spool position: no coil current'}}
 NEGLIGIBLE_SIGMA = 0.2
+#: The factors of a ``--smoke`` run: one of each kind (an absolute, a relative and a ratio
+#: range, a condition through the fluid law, the yardstick), plus the other test's first item.
+SMOKE_FACTORS = ('external_force_n', 'discharge_coefficient', 'spool_dynamic_friction_n',
+                 'fluid_temperature_k', 'noise_seed')
 NOISE_SEEDS = (0, 1)
 
 
-def factors(test: str) -> list:
-    """``[(name, kind, payload)]`` of the test's Morris factors (module docstring)."""
+def factors(test: str, smoke: bool = False) -> list:
+    """``[(name, kind, payload)]`` of the test's Morris factors (module docstring); ``smoke``:
+    those of :data:`SMOKE_FACTORS` and the other test's first item."""
     tol = load_tolerances()
     out = [(n, 'tolerance', t) for n, t in tol.items()
            if t.klass in DRAWN and n not in NOT_IN_MODEL.get(test, {})]
@@ -91,6 +96,9 @@ def factors(test: str) -> list:
     other = PREFLIGHT_ITEMS if test == 'valve_test' else VALVE_ITEMS
     out += [(param, 'item', rng) for _, _, param, rng in other]
     out.append(('noise_seed', 'seed', NOISE_SEEDS))
+    if smoke:
+        first = other[0][2]
+        out = [f for f in out if f[0] in SMOKE_FACTORS or f[0] == first]
     return out
 
 
@@ -141,12 +149,12 @@ def run_design(test: str, cases: list, workers: int):
 
 
 def screen(test: str, trajectories: int, seed: int, workers: int,
-           keep_dir: Path | None = None) -> dict:
+           keep_dir: Path | None = None, smoke: bool = False) -> dict:
     """The Morris figures of one test (module docstring)."""
     from SALib.analyze import morris as morris_analyze
     from SALib.sample import morris as morris_sample
     t0 = time.perf_counter()
-    fs = factors(test)
+    fs = factors(test, smoke)
     k = len(fs)
     problem = {'num_vars': k, 'names': [f[0] for f in fs], 'bounds': [[0.0, 1.0]] * k}
     x = morris_sample.sample(problem, trajectories, num_levels=4, seed=seed)
@@ -202,11 +210,11 @@ def screen(test: str, trajectories: int, seed: int, workers: int,
     return out
 
 
-def one_at_a_time(test: str, workers: int) -> dict:
+def one_at_a_time(test: str, workers: int, smoke: bool = False) -> dict:
     """Each factor alone at the two ends of its range, every other parameter nominal: per
     estimate and factor the larger change from the nominal valve's estimate in units of the
     nominal valve's stated deviation, and whether either end is flagged as a mismatch."""
-    fs = [f for f in factors(test) if f[1] != 'seed']
+    fs = [f for f in factors(test, smoke) if f[1] != 'seed']
     bench = load_bench()
     cases = [{'seed': 0}] + [case_of([f], [end], bench) for f in fs for end in (0.0, 1.0)]
     # an end at the nominal value is the nominal case: every distinct case runs once
@@ -336,8 +344,9 @@ def main(argv=None) -> int:
     try:
         for t in tests:
             out.mkdir(parents=True, exist_ok=True)
-            result['tests'][t] = screen(t, args.trajectories, args.seed, args.workers, out)
-            result['tests'][t]['one_at_a_time'] = one_at_a_time(t, args.workers)
+            result['tests'][t] = screen(t, args.trajectories, args.seed, args.workers, out,
+                                        args.smoke)
+            result['tests'][t]['one_at_a_time'] = one_at_a_time(t, args.workers, args.smoke)
         result['classification'] = classify(result)
         result['load_after'] = [round(v, 2) for v in os.getloadavg()]
         write_report(result, out)
