@@ -57,7 +57,7 @@ from eha_ros.health.preflight import FAULTS  # noqa: E402
 from eha_ros.physics import default_params, params_to_dict  # noqa: E402
 from eha_ros.physics.bench import fluid_at, load_bench  # noqa: E402
 from eha_ros.physics.maps import WEAR_RANGES  # noqa: E402
-from eha_ros.physics.tolerances import DRAWN, load_tolerances  # noqa: E402
+from eha_ros.physics.tolerances import DRAWN, NEGLIGIBLE_SIGMA, load_tolerances  # noqa: E402
 from eha_ros.training.preflight import inner_service  # noqa: E402
 
 #: The valve fit's items: (estimate column, deviation column, plant parameter, range).
@@ -77,7 +77,6 @@ CONDITIONS = ('supply_pressure_pa', 'return_pressure_pa', 'fluid_temperature_k')
 NOT_IN_MODEL = {'valve_test': {
     'noise_std_a': 'the valve test imposes the spool position: no coil current, no noise',
     'noise_sample_time_s': 'the valve test imposes the spool position: no coil current'}}
-NEGLIGIBLE_SIGMA = 0.2
 #: The factors of a ``--smoke`` run: one of each kind (an absolute, a relative and a ratio
 #: range, a condition through the fluid law, the yardstick), plus the other test's first item.
 SMOKE_FACTORS = ('external_force_n', 'discharge_coefficient', 'spool_dynamic_friction_n',

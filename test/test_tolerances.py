@@ -12,11 +12,10 @@ import yaml
 from eha_ros.physics import default_params
 from eha_ros.physics.bench import load_bench
 from eha_ros.physics.params import SPECS, ParameterError, config_dir, replace
-from eha_ros.physics.tolerances import CLASSES, DRAWN, load_tolerances
+from eha_ros.physics.tolerances import CLASSES, DRAWN, NEGLIGIBLE_SIGMA, load_tolerances
 
 ROOT = Path(__file__).resolve().parents[1]
 SCREENING = ROOT / 'docs' / 'screening' / 'screening.json'
-NEGLIGIBLE_SIGMA = 0.2
 DOC = yaml.safe_load((config_dir() / 'tolerances.yaml').read_text())
 
 

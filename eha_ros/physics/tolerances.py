@@ -14,14 +14,18 @@ from __future__ import annotations
 import dataclasses
 import functools
 
-from .params import SPEC_BY_NAME, SPECS, ParameterError, PlantParams, config_dir, read_yaml
+from .params import (SPEC_BY_NAME, SPECS, ParameterError, PlantParams, config_dir,
+                     default_params, read_yaml, replace)
 
-__all__ = ['CLASSES', 'DRAWN', 'Tolerance', 'load_tolerances', 'draw_value']
+__all__ = ['CLASSES', 'DRAWN', 'NEGLIGIBLE_SIGMA', 'Tolerance', 'load_tolerances']
 
 #: The classes, in the order of the file's header.
 CLASSES = ('measured', 'estimated', 'nuisance', 'negligible', 'setting')
 #: The classes that carry a range and are drawn by the screening and the fleet sets.
 DRAWN = ('nuisance', 'negligible')
+#: ``negligible``: the parameter's whole range moves every estimate by less than this many of
+#: the estimate's stated deviations in the shipped screening.
+NEGLIGIBLE_SIGMA = 0.2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,12 +55,6 @@ class Tolerance:
         return self.lo * ref, self.hi * ref
 
 
-def draw_value(t: Tolerance, u: float, params: PlantParams) -> float:
-    """The value at ``u`` in [0, 1] of ``t``'s range about ``params`` (linear)."""
-    lo, hi = t.bounds(params)
-    return lo + u * (hi - lo)
-
-
 def load_tolerances(path=None) -> dict:
     """``{name: Tolerance}`` of every plant parameter, in schema order.  Refused with a
     one-line :class:`ParameterError`: a parameter missing or unknown, an unknown class, a
@@ -68,7 +66,6 @@ def load_tolerances(path=None) -> dict:
 
 @functools.lru_cache(maxsize=4)
 def _load(path: str) -> dict:
-    from .params import default_params, replace
     doc = read_yaml(path, 'tolerances', 'parameter -> {class, range, reason}')
     unknown = sorted(set(doc) - set(SPEC_BY_NAME))
     if unknown:
