@@ -42,7 +42,7 @@ import numpy as np
 from eha_ros.health.preflight import FAULTS, FAULT_NAMES, load_faults
 from eha_ros.health.thresholds import OK, HealthThresholds, classify_fault
 from eha_ros.physics import default_params, params_to_dict
-from eha_ros.physics.bench import fluid_at, load_bench
+from eha_ros.physics.bench import load_bench
 from eha_ros.training.preflight import cases, draw_drift, wear_changes
 
 STREAM_CLEAN, STREAM_DRIFTED, STREAM_NOMINAL, STREAM_BEYOND = 41, 42, 43, 44
@@ -59,7 +59,7 @@ def beyond_entries(bench=None) -> list:
         values = ([f * getattr(p, name) for f in e['factors']] if 'factors' in e
                   else [float(v) for v in e['values']])
         for v in values:
-            changes = fluid_at(v, b) if name == 'fluid_temperature_k' else {name: v}
+            changes = {name: v}
             out.append((f'{name}={v:.4g}', changes))
     return out
 

@@ -55,7 +55,7 @@ import numpy as np  # noqa: E402
 
 from eha_ros.health.preflight import FAULTS  # noqa: E402
 from eha_ros.physics import default_params, params_to_dict  # noqa: E402
-from eha_ros.physics.bench import fluid_at, load_bench  # noqa: E402
+from eha_ros.physics.bench import load_bench  # noqa: E402
 from eha_ros.physics.maps import WEAR_RANGES  # noqa: E402
 from eha_ros.physics.tolerances import DRAWN, NEGLIGIBLE_SIGMA, load_tolerances  # noqa: E402
 from eha_ros.training.preflight import inner_service  # noqa: E402
@@ -114,7 +114,7 @@ def case_of(fs: list, u: np.ndarray, bench) -> dict:
             c[name] = float(lo + x * (hi - lo))
         elif kind == 'condition':
             v = float(payload[0] + x * (payload[1] - payload[0]))
-            c.update(fluid_at(v, bench) if name == 'fluid_temperature_k' else {name: v})
+            c[name] = v
         elif kind == 'item':
             c[name] = float(payload[0] + x * (payload[1] - payload[0]))
         else:

@@ -8,8 +8,9 @@ import pytest
 import yaml
 
 from eha_ros.physics.maps import WEAR_RANGES
-from eha_ros.physics.params import (SPECS, ParameterError, config_dir, default_params,
-                                    load_params, params_hash, params_to_dict, replace)
+from eha_ros.physics.params import (DERIVED, SETTABLE, SPEC_BY_NAME, ParameterError,
+                                    config_dir, default_params, load_params, params_hash,
+                                    params_to_dict, replace)
 
 P = default_params()
 TEXT = (config_dir() / 'eha_params.yaml').read_text()
@@ -17,8 +18,8 @@ TEXT = (config_dir() / 'eha_params.yaml').read_text()
 
 def test_every_parameter_has_value_unit_and_reason():
     doc = yaml.safe_load(TEXT)
-    assert set(doc) == {s.name for s in SPECS}
-    for spec in SPECS:
+    assert set(doc) == set(SETTABLE)
+    for spec in (SPEC_BY_NAME[n] for n in SETTABLE):
         entry = doc[spec.name]
         assert entry['unit'] == spec.unit
         assert len(entry['reason'].split()) >= 3, spec.name
@@ -74,8 +75,11 @@ def _with(name, value):
      'unknown parameter warp_drive'),
     (TEXT.replace('jack_area_m2: {value: 1.0e-3, unit: m^2',
                   'jack_area_m2: {value: 1.0e-3, unit: cm^2'), "unit 'cm\\^2'"),
-    (TEXT.replace('unit: kg/m^3, reason: "MIL-PRF-5606 at 40 degC"',
-                  'unit: kg/m^3, reason: ""'), 'fluid_density_kg_m3 has no reason'),
+    (TEXT.replace('reason: "new fluid, on its datasheet"', 'reason: ""'),
+     'fluid_condition_factor has no reason'),
+    (TEXT + '\nfluid_density_kg_m3: {value: 850.0, unit: kg/m^3, reason: "x y z"}\n',
+     'fluid_density_kg_m3 is not set: it follows from fluid_temperature_k'),
+    (_with('fluid_temperature_k', 20.0), 'at fluid_temperature_k = 20 K: .*fluid_kinematic_viscosity_m2_s = inf is not finite'),
     ('supply_pressure_pa: {value: [1, 2\n', 'malformed parameter file .* line'),
     ('- just\n- a list\n', 'expected a mapping'),
 ])
@@ -130,10 +134,24 @@ def test_simulate_cli_bad_input_one_line_and_exit_code(tmp_path):
 
 @pytest.mark.parametrize('name, value', [('supply_pressure_pa', 1e12),
                                          ('bulk_modulus_pa', 1e13),
-                                         ('fluid_density_kg_m3', 8.5e5)])
+                                         ('fluid_temperature_k', 1e4),
+                                         ('fluid_condition_factor', 0.0)])
 def test_non_physical_fluid_values_are_refused_up_front(name, value):
     """Values no hydraulic system has (a 1e12 Pa supply made the run diverge) are refused
     with a one-line error naming the parameter and its admissible range."""
     from eha_ros.physics.params import replace
     with pytest.raises(ParameterError, match=f'{name} .* non-physical'):
         replace(default_params(), **{name: value})
+
+
+@pytest.mark.parametrize('name', DERIVED)
+def test_the_fluids_density_and_viscosity_are_not_set_but_follow_its_temperature(name):
+    """The fluid's density and viscosity follow from its temperature and condition by the
+    datasheet law: an override of either is refused with the reason, and a changed temperature
+    moves both (the dictionary of settable parameters round-trips)."""
+    with pytest.raises(ParameterError, match=f'{name} is not set'):
+        replace(P, **{name: getattr(P, name)})
+    hot = replace(P, fluid_temperature_k=353.15)
+    assert getattr(hot, name) < getattr(P, name)
+    assert name not in params_to_dict(hot) and name in params_to_dict(hot, derived=True)
+    assert replace(hot) == hot

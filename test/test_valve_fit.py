@@ -14,9 +14,9 @@ from eha_ros.health.monitor import MonitorCore
 from eha_ros.health.thresholds import HealthThresholds
 from eha_ros.health.valve_fit import ValveFitEstimator
 from eha_ros.physics import default_params
-from eha_ros.physics.bench import (Conditions, ConditionSensors, fluid_at, load_bench,
-                                   mean_conditions, measure_conditions, temperature_of,
-                                   true_conditions)
+from eha_ros.physics.bench import (Conditions, ConditionSensors, load_bench, mean_conditions,
+                                   measure_conditions, true_conditions)
+from eha_ros.physics.fluid import load_fluid
 from eha_ros.physics.maintenance import ValveTest, valve_test_schedule
 from eha_ros.physics.maps import spool_grid, transient_map
 from eha_ros.physics.params import replace
@@ -39,14 +39,17 @@ def est():
 
 
 def test_fluid_law_gives_the_nominal_fluid_at_its_reference_temperature():
-    b = load_bench()
-    f = fluid_at(b.fluid.reference_temperature_k, b)
-    assert f['fluid_kinematic_viscosity_m2_s'] == pytest.approx(
-        P.fluid_kinematic_viscosity_m2_s, rel=1e-12)
-    assert f['fluid_density_kg_m3'] == pytest.approx(P.fluid_density_kg_m3, rel=1e-12)
-    # Walther: thinner when hot, 5 cSt at 100 degC by construction
-    assert fluid_at(373.15, b)['fluid_kinematic_viscosity_m2_s'] == pytest.approx(5e-6, 1e-9)
-    assert true_conditions(P, b).fluid_temperature_k == pytest.approx(313.15, abs=1e-9)
+    """The nominal fluid is the datasheet's at 40 degC, exactly; Walther's law is thinner hot,
+    5 cSt at 100 degC by construction; the density follows the temperature; the condition
+    factor scales the viscosity alone; the plant's true temperature is its parameter."""
+    assert P.fluid_kinematic_viscosity_m2_s == 1.4e-5 and P.fluid_density_kg_m3 == 850.0
+    hot = replace(P, fluid_temperature_k=373.15)
+    assert hot.fluid_kinematic_viscosity_m2_s == pytest.approx(5e-6, rel=1e-9)
+    assert hot.fluid_density_kg_m3 == pytest.approx(850.0 / (1 + 8.5e-4 * 60.0), rel=1e-12)
+    sheared = replace(hot, fluid_condition_factor=0.85)
+    assert sheared.fluid_kinematic_viscosity_m2_s == pytest.approx(0.85 * 5e-6, rel=1e-9)
+    assert sheared.fluid_density_kg_m3 == hot.fluid_density_kg_m3
+    assert true_conditions(sheared).fluid_temperature_k == 373.15
 
 
 def test_condition_sensors_read_one_tick_at_a_time_as_measure_conditions():
@@ -73,7 +76,8 @@ def test_settled_samples_end_on_the_maps_value():
 def test_measured_conditions_reach_the_estimate(est):
     """A valve at supply 2 % high and 60 degC: fitted at the measured conditions it reads its
     wear within its deviation; told nominal conditions instead it reads otherwise."""
-    truth = replace(VALVE, supply_pressure_pa=P.supply_pressure_pa * 1.02, **fluid_at(333.15))
+    truth = replace(VALVE, supply_pressure_pa=P.supply_pressure_pa * 1.02,
+                    fluid_temperature_k=333.15)
     curves = curves_of(truth)
     measured = mean_conditions(measure_conditions(truth, 3, 1000))
     e = est.estimate(curves, measured)
@@ -215,25 +219,26 @@ def test_graph_maintenance_test_gives_the_benchs_estimate_and_lists_its_conditio
 
 
 def test_bench_fluid_law_is_the_datasheets_whatever_the_parameters():
-    """One fluid law, anchored at the datasheet: a run's parameters never re-anchor it, so a
-    fluid at another viscosity has the temperature the datasheet gives that viscosity."""
+    """One fluid law, anchored at the datasheet: a run's parameters never re-anchor it; a
+    sheared fluid at 70 degC has the viscosity of its condition, and the bench's sensor reads
+    its temperature, not the temperature the datasheet would give that viscosity."""
     b = load_bench()
-    hot = fluid_at(343.15, b)
-    assert b.fluid.viscosity_m2_s(313.15) == pytest.approx(1.4e-5, rel=1e-12)
-    assert b.fluid.viscosity_m2_s(373.15) == pytest.approx(5.0e-6, rel=1e-12)
-    t = temperature_of(replace(default_params(), **hot), b)
-    assert t == pytest.approx(343.15, abs=1e-9)
-    assert load_bench() is b   # one law: loaded once, never per parameter set
-    # readings of a hot plant: its temperature within the sensor's bias, noise and quantum
+    law = load_fluid()
+    assert b.fluid is law and load_bench() is b   # one law, loaded once
+    assert law.viscosity_m2_s(313.15) == 1.4e-5
+    assert law.viscosity_m2_s(373.15) == pytest.approx(5.0e-6, rel=1e-12)
+    assert law.temperature_k(law.viscosity_m2_s(343.15)) == pytest.approx(343.15, abs=1e-9)
+    sheared = replace(default_params(), fluid_temperature_k=343.15, fluid_condition_factor=0.85)
+    assert law.temperature_k(sheared.fluid_kinematic_viscosity_m2_s) > 345.0
     s = b.sensors['fluid_temperature_k']
-    readings = ConditionSensors(7, b).read(replace(default_params(), **hot), 200)[:, 2]
+    readings = ConditionSensors(7, b).read(sheared, 200)[:, 2]
     assert abs(readings.mean() - 343.15) <= s.bias + 4 * s.noise_std / np.sqrt(200) + s.resolution
 
 
 def test_graph_with_a_hot_fluid_params_file_measures_its_temperature_and_agrees_with_the_sweep(
         eha_graph, tmp_path):
     """The maintenance test through the graph with a plant params file whose fluid is at 60 degC
-    (viscosity and density from the datasheet law; the monitor keeps its nominal model): the
+    (its fluid_temperature_k; the monitor keeps its nominal model): the
     plant's sensor reads 60 degC, not the reference 40 degC, and the live estimate equals the
     sweep's for the same fluid, valve and seed bit for bit."""
     import yaml
@@ -242,10 +247,9 @@ def test_graph_with_a_hot_fluid_params_file_measures_its_temperature_and_agrees_
     from eha_ros.physics.params import config_dir
     from eha_ros.sweep import parse_spec, read_dataset, run_sweep
     t_hot = 333.15
-    fluid = fluid_at(t_hot)
+    fluid = {'fluid_temperature_k': t_hot}
     doc = yaml.safe_load((config_dir() / 'eha_params.yaml').read_text())
-    for name, value in fluid.items():
-        doc[name]['value'] = value
+    doc['fluid_temperature_k']['value'] = t_hot
     params_file = tmp_path / 'hot_fluid.yaml'
     params_file.write_text(yaml.safe_dump(doc))
     wear = {'radial_clearance_m': 2.1e-6, 'overlap_supply_m': 0.6e-6, 'overlap_return_m': 0.6e-6}

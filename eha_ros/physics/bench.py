@@ -1,20 +1,15 @@
-"""The maintenance test bench: the fluid's temperature law, the measured test conditions and
-the envelopes of ``config/test_bench.yaml``.
+"""The maintenance test bench: the measured test conditions and the envelopes of
+``config/test_bench.yaml``.
 
 A test bench measures the conditions of a test - supply and return pressure, fluid
 temperature - and a diagnosis takes them as inputs; what no bench measures (the bulk modulus,
 metering-edge silting, hysteresis, ...) is drift the diagnosis must see through.
 
-Fluid law
-    Kinematic viscosity by Walther's equation (ASTM D341),
-    ``log10(log10(nu_cSt + 0.7)) = A - B log10(T)``, through the datasheet's viscosities at
-    the reference and the hot temperature (``config/test_bench.yaml``); density
-    ``rho(T) = rho_ref / (1 + alpha (T - T_ref))``.  The law is anchored once, at the
-    datasheet: never at the parameters of a run, in any path (the nominal fluid of
-    ``config/eha_params.yaml`` must be the datasheet's at the reference temperature, checked
-    on load).  :func:`fluid_at` gives viscosity and density at a temperature,
-    :func:`temperature_of` the temperature of a viscosity (the plant's fluid has the
-    temperature its viscosity says by this law).
+Fluid
+    The plant's fluid is its temperature and its condition (``fluid_temperature_k``,
+    ``fluid_condition_factor``); the viscosity and density follow from the datasheet law of
+    :mod:`eha_ros.physics.fluid` (``config/fluid.yaml``).  The bench's sensor measures the
+    temperature; the condition (a sheared or another batch of fluid) no bench measures.
 
 Measured conditions
     :func:`measure_conditions`: a reading is the true value plus a calibration error fixed
@@ -26,15 +21,15 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import math
 
 import numpy as np
 
+from .fluid import FluidLaw, load_fluid
 from .params import ParameterError, PlantParams, config_dir, default_params, read_yaml, replace
 
 __all__ = ['CONDITIONS', 'Conditions', 'ConditionSensors', 'outside_ranges', 'FluidLaw',
-           'TestBench', 'load_bench', 'fluid_at', 'temperature_of', 'true_conditions',
-           'measure_conditions', 'mean_conditions', 'with_conditions']
+           'TestBench', 'load_bench', 'true_conditions', 'measure_conditions',
+           'mean_conditions', 'with_conditions']
 
 #: The measured test conditions, in order.
 CONDITIONS = ('supply_pressure_pa', 'return_pressure_pa', 'fluid_temperature_k')
@@ -54,30 +49,6 @@ class Conditions:
 
     def array(self) -> np.ndarray:
         return np.array([getattr(self, k) for k in CONDITIONS])
-
-
-@dataclasses.dataclass(frozen=True)
-class FluidLaw:
-    """Walther viscosity and linear-expansion density of the fluid (see the module)."""
-
-    name: str
-    a: float
-    b: float
-    reference_temperature_k: float
-    reference_density_kg_m3: float
-    expansion_coefficient_1_k: float
-
-    def viscosity_m2_s(self, temperature_k: float) -> float:
-        w = self.a - self.b * math.log10(temperature_k)
-        return (10.0 ** (10.0 ** w) - 0.7) * 1e-6
-
-    def density_kg_m3(self, temperature_k: float) -> float:
-        return self.reference_density_kg_m3 / (
-            1.0 + self.expansion_coefficient_1_k * (temperature_k - self.reference_temperature_k))
-
-    def temperature_k(self, viscosity_m2_s: float) -> float:
-        w = math.log10(math.log10(viscosity_m2_s * 1e6 + 0.7))
-        return 10.0 ** ((self.a - w) / self.b)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,55 +95,20 @@ def outside_ranges(service: dict, c: Conditions) -> list:
     return out
 
 
-def _num(doc, key, where):
-    try:
-        v = doc[key]
-        return float(v['value'] if isinstance(v, dict) else v)
-    except (KeyError, TypeError, ValueError):
-        raise ParameterError(f'{where}: {key} must be a number') from None
-
-
 def load_bench(path=None) -> TestBench:
-    """Load ``config/test_bench.yaml`` (or ``path``).  The fluid law is the datasheet's
-    (anchored in the file, never at a run's parameters); the nominal parameters'
-    (``default_params()``) viscosity and density must be the law's at its reference
-    temperature."""
+    """Load ``config/test_bench.yaml`` (or ``path``); the fluid law is the datasheet's
+    (:func:`eha_ros.physics.fluid.load_fluid`)."""
     path = path or config_dir() / 'test_bench.yaml'
-    return _load(str(path), default_params())
-
-
-#: Relative agreement required between the nominal fluid of the parameters and the datasheet.
-_ANCHOR_RTOL = 1e-9
+    return _load(str(path), default_params(), load_fluid())
 
 
 @functools.lru_cache(maxsize=8)
-def _load(path: str, p: PlantParams) -> TestBench:
+def _load(path: str, p: PlantParams, law: FluidLaw) -> TestBench:
     doc = read_yaml(path, 'test bench', 'section -> entries')
-    unknown = sorted(set(doc) - {'fluid', 'sensors', 'service', 'nuisance', 'beyond'})
+    unknown = sorted(set(doc) - {'sensors', 'service', 'nuisance', 'beyond'})
     if unknown:
         raise ParameterError(f'{path}: unknown section {unknown[0]}')
     try:
-        f = doc['fluid']
-        t_ref = _num(f, 'reference_temperature_k', f'{path}: fluid')
-        t_hot = _num(f, 'hot_temperature_k', f'{path}: fluid')
-        nu_hot = _num(f, 'hot_viscosity_m2_s', f'{path}: fluid')
-        alpha = _num(f, 'expansion_coefficient_1_k', f'{path}: fluid')
-        nu_ref = _num(f, 'reference_viscosity_m2_s', f'{path}: fluid')
-        rho_ref = _num(f, 'reference_density_kg_m3', f'{path}: fluid')
-        if not (t_hot > t_ref > 0 and 0 < nu_hot < nu_ref and alpha >= 0 and rho_ref > 0):
-            raise ParameterError(f'{path}: fluid: need hot_temperature_k > reference > 0, '
-                                 'a hot viscosity below the reference one and a positive '
-                                 'density')
-        for name, law_value in (('fluid_kinematic_viscosity_m2_s', nu_ref),
-                                ('fluid_density_kg_m3', rho_ref)):
-            if abs(getattr(p, name) / law_value - 1.0) > _ANCHOR_RTOL:
-                raise ParameterError(
-                    f'{path}: fluid: the nominal {name} = {getattr(p, name):.6g} is not the '
-                    f'datasheet\'s {law_value:.6g} at {t_ref:g} K (one fluid: change both)')
-        w = [math.log10(math.log10(nu * 1e6 + 0.7)) for nu in (nu_ref, nu_hot)]
-        b = (w[0] - w[1]) / (math.log10(t_hot) - math.log10(t_ref))
-        law = FluidLaw(str(f.get('name', 'fluid')), w[0] + b * math.log10(t_ref), b, t_ref,
-                       rho_ref, alpha)
         sensors, service, nuisance, reasons = {}, {}, {}, {}
         for name in CONDITIONS:
             s = doc['sensors'][name]
@@ -202,31 +138,20 @@ def _load(path: str, p: PlantParams) -> TestBench:
     return TestBench(law, sensors, service, nuisance, beyond, reasons)
 
 
-def fluid_at(temperature_k: float, bench: TestBench | None = None) -> dict:
-    """Plant parameters of the fluid at ``temperature_k``: viscosity and density."""
-    law = (bench or load_bench()).fluid
-    return {'fluid_kinematic_viscosity_m2_s': law.viscosity_m2_s(temperature_k),
-            'fluid_density_kg_m3': law.density_kg_m3(temperature_k)}
-
-
-def temperature_of(params: PlantParams, bench: TestBench | None = None) -> float:
-    """The fluid temperature [K] at which the fluid law gives ``params``' viscosity."""
-    return (bench or load_bench()).fluid.temperature_k(params.fluid_kinematic_viscosity_m2_s)
-
-
 def with_conditions(params: PlantParams, c: Conditions, bench: TestBench | None = None
                     ) -> PlantParams:
-    """``params`` at the conditions ``c``: supply and return pressure, and the fluid at its
-    temperature."""
+    """``params`` at the conditions ``c``: supply and return pressure, and the fluid (of
+    ``params``' condition) at its temperature.  ``bench``: unused, kept for the callers that
+    pass it."""
     return replace(params, supply_pressure_pa=float(c.supply_pressure_pa),
                    return_pressure_pa=float(c.return_pressure_pa),
-                   **fluid_at(float(c.fluid_temperature_k), bench))
+                   fluid_temperature_k=float(c.fluid_temperature_k))
 
 
 def true_conditions(params: PlantParams, bench: TestBench | None = None) -> Conditions:
     """The plant's true test conditions."""
     return Conditions(params.supply_pressure_pa, params.return_pressure_pa,
-                      temperature_of(params, bench))
+                      params.fluid_temperature_k)
 
 
 class ConditionSensors:

@@ -29,7 +29,7 @@ import yaml
 __all__ = [
     'ParamSpec', 'SPECS', 'PlantParams', 'ParameterError', 'load_params', 'params_from_mapping',
     'default_params', 'params_hash', 'params_to_dict', 'config_dir', 'CD_MODELS',
-    'TORQUE_MOTOR_MODELS',
+    'TORQUE_MOTOR_MODELS', 'DERIVED', 'SETTABLE',
 ]
 
 
@@ -96,8 +96,16 @@ SPECS: tuple[ParamSpec, ...] = (
          'gains were rated at', hi=1e8),
     _pos('vapour_pressure_pa', 'Pa', 'PVap, absolute pressure at which the oil cavitates',
          hi=1e6),
-    _pos('fluid_density_kg_m3', 'kg/m^3', 'oil density rho', hi=2e3),
-    _pos('fluid_kinematic_viscosity_m2_s', 'm^2/s', 'oil kinematic viscosity nu', hi=1e-2),
+    # The fluid: its temperature and condition; its density and viscosity follow from the
+    # fluid's datasheet law (config/fluid.yaml, eha_ros.physics.fluid) and are not set.
+    _pos('fluid_temperature_k', 'K', 'fluid temperature; density and viscosity follow from '
+         "the fluid's datasheet law", hi=600.0),
+    _pos('fluid_condition_factor', '1', "the fluid's viscosity over its datasheet's at the "
+         'same temperature (1: new fluid; service shear lowers it)', hi=10.0),
+    _pos('fluid_density_kg_m3', 'kg/m^3', 'oil density rho (from fluid_temperature_k)',
+         hi=2e3),
+    _pos('fluid_kinematic_viscosity_m2_s', 'm^2/s', 'oil kinematic viscosity nu (from '
+         'fluid_temperature_k and fluid_condition_factor)', hi=1e-2),
     _pos('bulk_modulus_pa', 'Pa', 'Bet, effective bulk modulus of oil, hoses and entrained air',
          hi=1e10),
     # --- controller -----------------------------------------------------------------------
@@ -171,6 +179,11 @@ SPECS: tuple[ParamSpec, ...] = (
 )
 
 SPEC_BY_NAME = {s.name: s for s in SPECS}
+#: Fields of :class:`PlantParams` that follow from others and are never set: the fluid's
+#: density and viscosity, from its temperature and condition by the datasheet law.
+DERIVED = ('fluid_density_kg_m3', 'fluid_kinematic_viscosity_m2_s')
+#: The parameters one sets (a file, an override, a sweep): every field but :data:`DERIVED`.
+SETTABLE = tuple(s.name for s in SPECS if s.name not in DERIVED)
 
 #: The parameters as the kernels take them: one float64 per field, in schema order.
 PlantParams = namedtuple('PlantParams', [s.name for s in SPECS])
@@ -220,8 +233,15 @@ def params_from_mapping(values: Mapping[str, object], source: str = 'parameters'
     unknown = sorted(set(values) - set(SPEC_BY_NAME))
     if unknown:
         raise ParameterError(f'{source}: unknown parameter {unknown[0]}')
+    derived = [n for n in DERIVED if n in values]
+    if derived:
+        raise ParameterError(f'{source}: parameter {derived[0]} is not set: it follows from '
+                             'fluid_temperature_k and fluid_condition_factor by the fluid '
+                             'law (config/fluid.yaml)')
     out = {}
     for spec in SPECS:
+        if spec.name in DERIVED:
+            continue
         if spec.name not in values:
             raise ParameterError(f'{source}: missing parameter {spec.name} [{spec.unit}]')
         value = _coerce(spec, values[spec.name], source)
@@ -230,6 +250,16 @@ def params_from_mapping(values: Mapping[str, object], source: str = 'parameters'
         except ParameterError as exc:
             raise ParameterError(f'{source}: {exc}') from None
         out[spec.name] = value
+    from .fluid import load_fluid
+    law = load_fluid()
+    t, factor = out['fluid_temperature_k'], out['fluid_condition_factor']
+    for name, value in (('fluid_density_kg_m3', law.density_kg_m3(t)),
+                        ('fluid_kinematic_viscosity_m2_s', law.viscosity_m2_s(t, factor))):
+        try:
+            SPEC_BY_NAME[name].check(value)
+        except ParameterError as exc:
+            raise ParameterError(f'{source}: at fluid_temperature_k = {t:g} K: {exc}') from None
+        out[name] = value
     p = PlantParams(**out)
     try:
         _cross_check(p)
@@ -245,10 +275,13 @@ def replace(p: PlantParams, **changes) -> PlantParams:
     return params_from_mapping(d, source='parameter override')
 
 
-def params_to_dict(p: PlantParams) -> dict:
-    """``name -> value`` with mode parameters as their names (inverse of the mapping)."""
+def params_to_dict(p: PlantParams, derived: bool = False) -> dict:
+    """``name -> value`` of the settable parameters, mode parameters as their names (inverse
+    of :func:`params_from_mapping`); ``derived``: the :data:`DERIVED` fields too."""
     d = {}
     for spec, value in zip(SPECS, p):
+        if spec.name in DERIVED and not derived:
+            continue
         d[spec.name] = spec.choices[int(value)] if spec.choices else float(value)
     return d
 
@@ -333,7 +366,7 @@ def params_hash(p: PlantParams, names=None) -> str:
 
     ``names`` restricts the hash to the parameters a derived artefact depends on.
     """
-    d = params_to_dict(p)
+    d = params_to_dict(p, derived=True)
     if names is not None:
         d = {k: d[k] for k in names}
     blob = json.dumps({k: (repr(v) if isinstance(v, float) else v) for k, v in sorted(

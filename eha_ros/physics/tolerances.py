@@ -1,6 +1,6 @@
 """Every plant parameter classified for the diagnosis of a fleet: ``config/tolerances.yaml``.
 
-Each parameter of :data:`eha_ros.physics.params.SPECS` has one class (:data:`CLASSES`): a
+Each settable parameter (:data:`eha_ros.physics.params.SETTABLE`) has one class (:data:`CLASSES`): a
 condition the test bench measures, an item a test estimates, a nuisance drawn over its range, a
 negligible one (the shipped screening shows its whole range moves no estimate by 0.2 of its
 stated deviation), or a setting known exactly.  Nuisances and negligibles carry the range a real
@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 
-from .params import (SPEC_BY_NAME, SPECS, ParameterError, PlantParams, config_dir,
+from .params import (DERIVED, SETTABLE, SPEC_BY_NAME, ParameterError, PlantParams, config_dir,
                      default_params, read_yaml, replace)
 
 __all__ = ['CLASSES', 'DRAWN', 'NEGLIGIBLE_SIGMA', 'Tolerance', 'load_tolerances']
@@ -67,16 +67,18 @@ def load_tolerances(path=None) -> dict:
 @functools.lru_cache(maxsize=4)
 def _load(path: str) -> dict:
     doc = read_yaml(path, 'tolerances', 'parameter -> {class, range, reason}')
-    unknown = sorted(set(doc) - set(SPEC_BY_NAME))
+    unknown = sorted(set(doc) - set(SETTABLE))
     if unknown:
-        raise ParameterError(f'{path}: unknown plant parameter {unknown[0]}')
-    missing = [s.name for s in SPECS if s.name not in doc]
+        what = 'is not set (it follows from the fluid\'s temperature and condition)' \
+            if unknown[0] in DERIVED else 'is no plant parameter'
+        raise ParameterError(f'{path}: {unknown[0]} {what}')
+    missing = [n for n in SETTABLE if n not in doc]
     if missing:
         raise ParameterError(f'{path}: plant parameter {missing[0]} has no class '
                              f'(one of {", ".join(CLASSES)})')
     p0 = default_params()
     out = {}
-    for spec in SPECS:
+    for spec in (SPEC_BY_NAME[n] for n in SETTABLE):
         e, where = doc[spec.name], f'{path}: {spec.name}'
         if not isinstance(e, dict):
             raise ParameterError(f'{where}: expected a mapping with class and reason')

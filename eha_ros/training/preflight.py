@@ -51,7 +51,7 @@ from eha_ros.artefacts import models_dir, save_artefact
 from eha_ros.health.preflight import (CONDITION_READINGS, FAULT_NAMES, FAULTS, FAULTS_FILE,
                                       N_INPUTS, RING_COLUMNS, FaultModel, OodModel, Subspace)
 from eha_ros.physics import PlantParams, default_params
-from eha_ros.physics.bench import (CONDITIONS, fluid_at, load_bench, mean_conditions,
+from eha_ros.physics.bench import (CONDITIONS, load_bench, mean_conditions,
                                    measure_conditions)
 from eha_ros.physics.maps import fluid_hash
 from eha_ros.physics.params import replace
@@ -109,7 +109,7 @@ def draw_drift(rng: np.random.Generator, bench=None, params: PlantParams | None 
     """Plant parameters of the unmeasured drift and the true test conditions of one case:
     each bench nuisance and :data:`VALVE_NUISANCE` entry uniform over its range, supply and
     return pressure and the fluid temperature uniform over the service envelope (``inner``:
-    over :func:`inner_service`), the fluid's viscosity and density at that temperature."""
+    over :func:`inner_service`)."""
     b = bench or load_bench()
     p = params or default_params()
     service = inner_service(b) if inner else b.service
@@ -121,7 +121,7 @@ def draw_drift(rng: np.random.Generator, bench=None, params: PlantParams | None 
         out[name] = float(rng.uniform(lo, hi))
     for name in ('supply_pressure_pa', 'return_pressure_pa'):
         out[name] = float(rng.uniform(*service[name]))
-    out.update(fluid_at(float(rng.uniform(*service['fluid_temperature_k'])), b))
+    out['fluid_temperature_k'] = float(rng.uniform(*service['fluid_temperature_k']))
     return out
 
 
@@ -375,18 +375,14 @@ def envelope_parameters(bench=None) -> tuple:
 
 def envelope_targets(case_list, bench=None) -> np.ndarray:
     """The parameters of :func:`envelope_parameters` of each case, normalised to their
-    ranges (the true fluid temperature from the viscosity)."""
+    ranges."""
     b, p = bench or load_bench(), default_params()
     names, ranges = envelope_parameters(b)
     rows = []
     for w, _ in case_list:
         row = []
         for n in names:
-            if n == 'fluid_temperature_k':
-                row.append(b.fluid.temperature_k(w.get('fluid_kinematic_viscosity_m2_s',
-                                                       p.fluid_kinematic_viscosity_m2_s)))
-            else:
-                row.append(w.get(n, getattr(p, n)))
+            row.append(w.get(n, getattr(p, n)))
         rows.append(row)
     return (np.array(rows) - ranges[:, 0]) / (ranges[:, 1] - ranges[:, 0])
 

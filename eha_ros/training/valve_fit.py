@@ -29,7 +29,7 @@ import numpy as np
 from eha_ros.artefacts import models_dir, save_artefact
 from eha_ros.health.valve_fit import FIT_FILE, FIT_NAMES, _load_cached
 from eha_ros.physics import default_params, params_to_dict
-from eha_ros.physics.bench import fluid_at, load_bench
+from eha_ros.physics.bench import load_bench
 from eha_ros.physics.maps import WEAR_RANGES
 
 __all__ = ['N_CAL', 'SEED_CAL', 'VALVE_NUISANCE', 'drifted_cases', 'run_cases',
@@ -56,7 +56,7 @@ def drifted_cases(n: int, stream: int, *, wear: bool = True, drift: bool = True,
         if wear:
             c['radial_clearance_m'] = float(rng.uniform(*WEAR_RANGES['radial_clearance_m']))
             c['overlap_supply_m'] = float(rng.uniform(*WEAR_RANGES['overlap_m']))
-        t = b.fluid.temperature_k(p.fluid_kinematic_viscosity_m2_s)
+        t = p.fluid_temperature_k
         if drift:
             c['supply_pressure_pa'] = float(rng.uniform(0.95, 1.05) * p.supply_pressure_pa)
             c['return_pressure_pa'] = float(rng.uniform(3e5, 1e6))
@@ -67,8 +67,8 @@ def drifted_cases(n: int, stream: int, *, wear: bool = True, drift: bool = True,
         seed = int(rng.integers(0, 2 ** 31 - 1))
         over = dict(overrides or {})
         t = float(over.pop('fluid_temperature_k', t))
-        if drift or t != b.fluid.temperature_k(p.fluid_kinematic_viscosity_m2_s):
-            c.update(fluid_at(t, b))
+        if drift or t != p.fluid_temperature_k:
+            c['fluid_temperature_k'] = t
         c.update(over)
         if 'overlap_supply_m' in c:
             c['overlap_return_m'] = c['overlap_supply_m']
