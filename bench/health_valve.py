@@ -10,14 +10,16 @@ Sets
     fluid temperature over its service range, bulk modulus -20/+10 %, Khsv up to 0.2 and jack
     leakage up to 10x drawn uniformly.  ``nominal_drift``: the nominal valve with that drift
     and different seeds (false alarms).  ``beyond``: drifted valves with one condition beyond
-    the envelope (``beyond`` in ``config/test_bench.yaml``).
+    the envelope (``beyond`` in ``config/test_bench.yaml``).  ``fleet``: random valves with
+    that drift and every nuisance of ``config/tolerances.yaml`` drawn over its range (the
+    unit-to-unit tolerances and the fluid's condition), from a stream of its own.
 
 Per set and procedure: mean and max error in % of each range, 2-sigma coverage, items that
 read OK with a 2-sigma interval excluding the truth, mismatch flags (the reference's: its
 residual beyond ``residual_error_pa``), and the confusion table of the true level against the
 reported one.
 
-    python bench/health_valve.py [--workers 2] [--quick] [--smoke]
+    python bench/health_valve.py [--workers 2] [--quick] [--smoke] [--sets fleet,...]
 
 ``--smoke``: one valve per set (two ``beyond`` values), in process: a check that the bench
 runs, no figure.
@@ -28,15 +30,17 @@ import json
 import os
 import time
 
-import numpy as np
+os.environ.setdefault('NUMBA_NUM_THREADS', '1')   # the sweep's workers import this again
 
-from eha_ros.graph import LEVEL_NAMES
-from eha_ros.health.thresholds import HealthEstimate, HealthThresholds, classify
-from eha_ros.physics.maps import WEAR_RANGES
-from eha_ros.training.valve_fit import drifted_cases, run_cases
+import numpy as np  # noqa: E402
 
-#: Streams of the sets (the calibration uses 31).
-STREAMS = {'clean': 201, 'drift': 202, 'nominal_drift': 203, 'beyond': 204}
+from eha_ros.graph import LEVEL_NAMES  # noqa: E402
+from eha_ros.health.thresholds import HealthEstimate, HealthThresholds, classify  # noqa: E402
+from eha_ros.physics.maps import WEAR_RANGES  # noqa: E402
+from eha_ros.training.valve_fit import drifted_cases, run_cases  # noqa: E402
+
+#: Streams of the sets (the calibration uses 32; 31 before the fleet).
+STREAMS = {'clean': 201, 'drift': 202, 'nominal_drift': 203, 'beyond': 204, 'fleet': 205}
 SPANS = np.array([np.diff(WEAR_RANGES['radial_clearance_m'])[0],
                   np.diff(WEAR_RANGES['overlap_m'])[0]])
 CANNOT = 3
@@ -105,14 +109,15 @@ def figures(table, cases, procedure, lim) -> dict:
 
 
 #: Cases per set: (clean and noisy valves, drifted, nominal drifted, per beyond value, beyond
-#: values: None for every one of the bench's).
-SIZES = {'full': (40, 200, 24, 10, None), 'quick': (12, 40, 8, 3, None),
-         'smoke': (1, 1, 1, 1, 2)}
+#: values: None for every one of the bench's, fleet).
+SIZES = {'full': (40, 200, 24, 10, None, 200), 'quick': (12, 40, 8, 3, None, 40),
+         'smoke': (1, 1, 1, 1, 2, 1)}
+SETS = ('clean', 'noise_1pct', 'drift', 'nominal_drift', 'beyond', 'fleet')
 
 
 def sets(size: str = 'full') -> dict:
     """``{set: (cases, noise)}`` with the counts of ``SIZES[size]``."""
-    n, n_drift, n_nominal, per, n_beyond = SIZES[size]
+    n, n_drift, n_nominal, per, n_beyond, n_fleet = SIZES[size]
     clean = drifted_cases(n, STREAMS['clean'], drift=False)
     out = {'clean': (clean, 0.0), 'noise_1pct': (clean, 0.01),
            'drift': (drifted_cases(n_drift, STREAMS['drift']), 0.0),
@@ -131,14 +136,18 @@ def sets(size: str = 'full') -> dict:
                 per, STREAMS['beyond'] + 1000 * k, overrides={name: v})]
             k += 1
     out['beyond'] = (beyond[:None if n_beyond is None else n_beyond * per], 0.0)
+    out['fleet'] = (drifted_cases(n_fleet, STREAMS['fleet'], fleet=True), 0.0)
     return out
 
 
-def valve_drift(workers: int = 2, size: str = 'full', progress=None) -> dict:
-    """The figures of every set (module docstring) of ``SIZES[size]``, both procedures."""
+def valve_drift(workers: int = 2, size: str = 'full', progress=None, only=SETS) -> dict:
+    """The figures of the sets ``only`` (module docstring) of ``SIZES[size]``, both
+    procedures."""
     lim = HealthThresholds.load()
     out = {}
     for name, (cases, noise) in sets(size).items():
+        if name not in only:
+            continue
         clean = [{k: v for k, v in c.items() if k != '_beyond'} for c in cases]
         out[name] = {}
         for procedure in ('settled', 'reference'):
@@ -168,17 +177,24 @@ def main():
     ap.add_argument('--quick', action='store_true', help='fewer cases')
     ap.add_argument('--smoke', action='store_true',
                     help='one or two valves per set: a check, no figure')
+    ap.add_argument('--sets', default=','.join(SETS),
+                    help=f'comma-separated sets to run (default all: {",".join(SETS)})')
     args = ap.parse_args()
+    only = tuple(x for x in args.sets.split(',') if x)
+    bad = [x for x in only if x not in SETS]
+    if bad or not only:
+        ap.error(f'--sets: unknown set {bad[0]!r} (known: {", ".join(SETS)})' if bad
+                 else '--sets: name at least one set')
     if args.workers is None:
         args.workers = 1 if args.smoke else 2
     if args.workers < 1:
         ap.error(f'--workers {args.workers} must be at least 1')
     size = 'smoke' if args.smoke else 'quick' if args.quick else 'full'
     t0 = time.perf_counter()
-    out = {'benchmark': 'health_valve', 'smoke': args.smoke, 'size': size,
+    out = {'benchmark': 'health_valve', 'smoke': args.smoke, 'size': size, 'sets': list(only),
            'load_before': [round(x, 2) for x in os.getloadavg()]}
     out.update(valve_drift(args.workers, size,
-                           progress=lambda line: print(line, flush=True)))
+                           progress=lambda line: print(line, flush=True), only=only))
     out['load_after'] = [round(x, 2) for x in os.getloadavg()]
     out['wall_s'] = round(time.perf_counter() - t0, 1)
     print(json.dumps(out))

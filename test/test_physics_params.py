@@ -79,7 +79,8 @@ def _with(name, value):
      'fluid_condition_factor has no reason'),
     (TEXT + '\nfluid_density_kg_m3: {value: 850.0, unit: kg/m^3, reason: "x y z"}\n',
      'fluid_density_kg_m3 is not set: it follows from fluid_temperature_k'),
-    (_with('fluid_temperature_k', 20.0), 'at fluid_temperature_k = 20 K: .*fluid_kinematic_viscosity_m2_s = inf is not finite'),
+    (_with('fluid_temperature_k', 20.0),
+     'at fluid_temperature_k = 20 K: .*fluid_kinematic_viscosity_m2_s = inf is not finite'),
     ('supply_pressure_pa: {value: [1, 2\n', 'malformed parameter file .* line'),
     ('- just\n- a list\n', 'expected a mapping'),
 ])

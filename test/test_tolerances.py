@@ -12,7 +12,7 @@ import yaml
 from eha_ros.physics import default_params
 from eha_ros.physics.bench import load_bench
 from eha_ros.physics.params import SETTABLE, ParameterError, config_dir, replace
-from eha_ros.physics.tolerances import CLASSES, DRAWN, NEGLIGIBLE_SIGMA, load_tolerances
+from eha_ros.physics.tolerances import CLASSES, DRAWN, NEGLIGIBLE_SIGMA, draw_unit, load_tolerances
 
 ROOT = Path(__file__).resolve().parents[1]
 SCREENING = ROOT / 'docs' / 'screening' / 'screening.json'
@@ -156,3 +156,30 @@ def test_every_negligible_parameter_is_negligible_by_the_shipped_screening(scree
         for test, r in screening['tests'].items():
             eff = r['largest_effect_sigma'][name]
             assert eff < NEGLIGIBLE_SIGMA, f'{name} moves a {test} estimate by {eff} sigma'
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), static=st.floats(0.0, 20.0))
+def test_a_drawn_unit_is_a_valid_valve_inside_every_range(seed, static):
+    """The fleet's one sampler: every nuisance inside its range about nominal, a dynamic
+    friction inside its ratio of the breakaway friction it is given, the caller's changes kept
+    as given, the same unit from the same stream, and always a valve the schema accepts."""
+    import numpy as np
+    tol, p = load_tolerances(), default_params()
+    given_changes = {'spool_static_friction_n': static, 'radial_clearance_m': 4e-6}
+    u = draw_unit(np.random.default_rng(seed), given_changes)
+    assert u == draw_unit(np.random.default_rng(seed), given_changes)
+    assert {n for n, t in tol.items() if t.klass == 'nuisance'} <= set(u)
+    for name, t in tol.items():
+        if t.klass != 'nuisance':
+            continue
+        if t.ratio_of:
+            ref = u.get(t.ratio_of, getattr(p, t.ratio_of))
+            assert t.lo * ref - 1e-12 <= u[name] <= t.hi * ref + 1e-12, name
+        else:
+            lo, hi = t.bounds(p)
+            assert lo <= u[name] <= hi, name
+    assert u['spool_static_friction_n'] == static and u['radial_clearance_m'] == 4e-6
+    replace(p, **u)   # raises if the unit is not a valid valve
+    left = draw_unit(np.random.default_rng(seed), exclude=('noise_std_a',))
+    assert 'noise_std_a' not in left

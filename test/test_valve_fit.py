@@ -272,3 +272,17 @@ def test_graph_with_a_hot_fluid_params_file_measures_its_temperature_and_agrees_
     assert live[-1].overlap_m == row['est_overlap_m']
     assert abs(live[-1].radial_clearance_m - wear['radial_clearance_m']) <= (
         2 * live[-1].radial_clearance_std_m)
+
+
+def test_unit_priors_follow_the_tolerances():
+    """The valve fit's priors from config/tolerances.yaml: the laminar factor (fluid condition
+    0.85-1.05 over the port width's and the eccentricity's leakage gain, e up to 0.5) lies
+    below 1 on average; the edges' Cd w over nominal is about Cd's mid-range over 0.61 (0.62 /
+    0.61) with the spread of a uniform range of +-6.6 % (about 3.8 %)."""
+    from eha_ros.health.valve_fit import unit_priors
+    pr = unit_priors()
+    lam_mean, lam_std = pr['laminar']
+    assert -0.1 < lam_mean < -0.04 and 0.03 < lam_std < 0.07
+    edge_mean, edge_std = pr['edge']
+    assert edge_mean == pytest.approx(0.62 / 0.61, rel=3e-3)
+    assert edge_std == pytest.approx(0.08 / 0.61 / np.sqrt(12), rel=0.05)

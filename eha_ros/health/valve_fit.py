@@ -4,33 +4,46 @@
 What is measured and what is not
     The bench measures supply and return pressure and the fluid temperature
     (:mod:`eha_ros.physics.bench`); the fit takes them as inputs (the fluid's viscosity and
-    density from its temperature law).  The settled pressures are the steady map
-    (:func:`eha_ros.physics.maps.steady_map`), which the bulk modulus does not enter.  The
-    metering edges' silting (Khsv, ``valve_degradation``) changes the open-spool curves at a
-    flow, and the jack's piston leakage (the test circuit's ports are the jack's) the
-    blocked-port curve near null, so both are fitted beside the radial clearance and the
-    overlap: four unknowns.
+    density from its temperature by the datasheet law).  The settled pressures are the steady
+    map (:func:`eha_ros.physics.maps.steady_map`), which the bulk modulus does not enter.
+    What a real unit does not share with the model enters the maps through few groups, and
+    the fit has one variable for each:
+
+    * the metering edges' flow coefficient ``kappa = Cd (1 - Khsv) w / (Cd w)_nominal``:
+      silting (Khsv), the unit's discharge coefficient and port width act alike, so Khsv is
+      read as ``1 - kappa / E[Cd w / (Cd w)_nominal]``, its deviation widened by that
+      ratio's unit-to-unit spread (``config/tolerances.yaml``);
+    * the Cd law's critical flow number (a model uncertainty, 30-1000), fitted on a log
+      scale;
+    * the laminar factor, the covered edges' leakage gain over the model's: the fluid's
+      condition over the port width's and the eccentricity's gain ``(1 + 1.5 e^2)``.  The
+      test cannot tell it from the clearance (the leakage goes as ``c^3`` times it), so it is
+      fitted with its prior from the tolerances (:func:`unit_priors`), and the clearance's
+      deviation carries it;
+    * the jack's piston leakage (the test circuit's ports are the jack's), near null;
+    * the supply pressure's calibration error, with its sensor's prior.
 
 Fit
     Weighted least squares (:func:`scipy.optimize.least_squares`) of the steady P12 on the
     points whose measured |P12| lies below 95 % of the measured supply-return difference (a
     blocked chamber at a flow is beyond what a bench's relief lets through), weights
-    ``1 / (0.01 |P12| + 20 kPa)``: in units of a 1 % measurement noise.  Starts: the best
-    of a 4 x 4 grid of clearance and overlap, refined from the two best.  A point's reading
-    is the mean of its P12 samples over the last tenth of its hold; points that had not
-    settled (that mean differs from the previous tenth's) are left out.
+    ``1 / (0.01 |P12| + 20 kPa)``: in units of a 1 % measurement noise.  Starts: a grid of
+    clearance, overlap and critical flow number (4 x 4 x 2), the best three refined.  A
+    point's reading is the mean of its P12 samples over the last tenth of its hold; points
+    that had not settled (that mean differs from the previous tenth's) are left out.
 
 Uncertainty
     The fit's covariance (scaled by its own residual where that exceeds the weights' noise),
     plus the conditions' sensor errors (calibration error uniform within the sensor's bias,
     ``config/test_bench.yaml``) propagated through the fit's linearisation, times a
-    calibration factor per parameter (at least 1) that put 95 % of a drifted held-out set
-    within 2 sigma (``valve_fit.npz``, :mod:`eha_ros.training.valve_fit`).
+    calibration factor per parameter (at least 1) that put 95 % of a held-out drawn fleet
+    (every nuisance of ``config/tolerances.yaml``) within 2 sigma (``valve_fit.npz``,
+    :mod:`eha_ros.training.valve_fit`).
 
 Model-mismatch test
     ``chi``, the weighted RMS residual per degree of freedom, against the limit found on the
-    drifted held-out set; measured conditions outside the service range; Khsv beyond its
-    envelope.  Beyond any of them the estimate says the valve model does not explain the
+    held-out fleet; measured conditions outside the service range; Khsv beyond its envelope
+    (either side).  Beyond any of them the estimate says the valve model does not explain the
     test, and why, and the deviations widen to the range's (:attr:`HealthEstimate.mismatch`).
 """
 
@@ -82,14 +95,60 @@ def window_mean(samples) -> float:
 
 
 _SUPPLY_UNIT_PA = 1e4
-# fit variables: clearance [um], overlap [um], Khsv, jack leakage [1e-13 m^3/(s Pa)],
-# supply pressure less its reading [10 kPa]
-_LO = np.array([0.3, -5.0, KHSV_RANGE[0], 0.0, -50.0])
-_HI = np.array([10.0, 10.0, KHSV_RANGE[1], 100.0, 50.0])
-_SCALE = np.array([1.0, 1.0, 0.05, 1.0, 1.0])
+# fit variables: clearance [um], overlap [um], kappa (the metering edges' flow coefficient
+# Cd (1 - Khsv) w over the nominal Cd w), log10 of the Cd law's critical flow number, jack
+# leakage [1e-13 m^3/(s Pa)], supply pressure less its reading [10 kPa], log10 of the
+# laminar factor (module docstring)
+_LO = np.array([0.3, -5.0, 0.3, np.log10(15.0), 0.0, -50.0, -0.5])
+_HI = np.array([10.0, 10.0, 1.3, np.log10(3000.0), 100.0, 50.0, 0.5])
+_SCALE = np.array([1.0, 1.0, 0.05, 0.2, 1.0, 1.0, 0.02])
 _UNITS = np.array([1e-6, 1e-6, 1.0, 1e-13])
 _START_C = (1.2, 2.5, 4.0, 5.5)
 _START_O = (-1.5, 1.0, 3.5, 6.0)
+_START_LC = (60.0, 400.0)
+#: Starts refined by least squares (the best of the grid by cost).
+_REFINED = 3
+#: Draws of the unit-to-unit priors (:func:`unit_priors`), from a stream of their own.
+_PRIOR_DRAWS = 20000
+_PRIOR_STREAM = 0x7A1F
+
+
+@functools.lru_cache(maxsize=4)
+def _priors(tol_path: str, p: PlantParams) -> dict:
+    from eha_ros.physics.tolerances import load_tolerances
+    tol = load_tolerances(tol_path)
+    rng = np.random.default_rng(_PRIOR_STREAM)
+
+    def factor(name):   # the parameter's drawn value over its nominal
+        t = tol[name]
+        if t.klass not in ('nuisance', 'negligible'):
+            return np.ones(_PRIOR_DRAWS)
+        lo, hi = t.bounds(p)
+        v = rng.uniform(lo, hi, _PRIOR_DRAWS)
+        nominal = getattr(p, name)
+        return v / nominal if nominal else v
+
+    width = factor('port_width_m')
+    cd = factor('discharge_coefficient')
+    ecc = tol['eccentricity_ratio']
+    e = (rng.uniform(*ecc.bounds(p), _PRIOR_DRAWS) if ecc.klass in ('nuisance', 'negligible')
+         else np.full(_PRIOR_DRAWS, p.eccentricity_ratio))
+    cond = factor('fluid_condition_factor') * p.fluid_condition_factor
+    e0 = 1.0 + 1.5 * p.eccentricity_ratio ** 2
+    laminar = np.log10(cond / (width * (1.0 + 1.5 * e * e) / e0))
+    edge = cd * width
+    return {'laminar': (float(laminar.mean()), float(laminar.std())),
+            'edge': (float(edge.mean()), float(edge.std()))}
+
+
+def unit_priors(params: PlantParams | None = None, tolerances=None) -> dict:
+    """The unit-to-unit spread the valve test cannot see, from ``config/tolerances.yaml``
+    (module docstring): ``laminar`` (mean, std) of log10 of the laminar factor, the fluid's
+    condition over the port width's and the eccentricity's leakage gain; ``edge`` (mean, std)
+    of the metering edges' Cd w over nominal, which sets Khsv's reading."""
+    from eha_ros.physics.params import config_dir
+    return _priors(str(tolerances or config_dir() / 'tolerances.yaml'),
+                   params or default_params())
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,10 +178,15 @@ def _load_cached(path: str, mtime_ns: int) -> FitCalibration:
 
 
 def _params(base: PlantParams, theta) -> PlantParams:
-    c, o, k, leak = theta
-    return replace(base, radial_clearance_m=float(c) * 1e-6, overlap_supply_m=float(o) * 1e-6,
-                   overlap_return_m=float(o) * 1e-6, valve_degradation=float(k),
-                   leakage_coeff_m3_s_pa=float(leak) * 1e-13)
+    """The plant parameters of fit variables ``theta`` (all but the supply offset) about
+    ``base`` at the test's conditions: Khsv 0, the edges' coefficient in Cd, the laminar
+    factor in the fluid's condition."""
+    c, o, kappa, log_lc, leak, log_lam = (float(v) for v in theta)
+    return replace(base, radial_clearance_m=c * 1e-6, overlap_supply_m=o * 1e-6,
+                   overlap_return_m=o * 1e-6, valve_degradation=0.0,
+                   discharge_coefficient=min(base.discharge_coefficient * kappa, 1.0),
+                   critical_flow_number=10.0 ** log_lc, leakage_coeff_m3_s_pa=leak * 1e-13,
+                   fluid_condition_factor=base.fluid_condition_factor * 10.0 ** log_lam)
 
 
 def _points(curves, cond: Conditions):
@@ -163,8 +227,9 @@ def _points(curves, cond: Conditions):
 def fit_curves(curves, cond: Conditions, base: PlantParams, bench=None,
                supply_std_pa: float | None = None) -> dict:
     """The weighted least-squares fit (module docstring): ``theta`` (clearance [um],
-    overlap [um], Khsv, jack leakage [1e-13 m^3/(s Pa)], supply pressure less its reading
-    [10 kPa]), its covariance, ``chi``, the RMS residual [Pa], the points used and the
+    overlap [um], the edges' flow coefficient kappa, log10 critical flow number, jack leakage
+    [1e-13 m^3/(s Pa)], supply pressure less its reading [10 kPa], log10 laminar factor), its
+    covariance, ``chi``, the RMS residual [Pa], the points used and the
     sensitivities of ``theta`` to the other measured conditions.  ``supply_std_pa``: the
     prior deviation of the supply pressure about ``cond``'s (default: its sensor's)."""
     from scipy.optimize import least_squares
@@ -177,23 +242,26 @@ def fit_curves(curves, cond: Conditions, base: PlantParams, bench=None,
     if supply_std_pa is None:   # the transducer's calibration error, uniform
         supply_std_pa = b.sensors['supply_pressure_pa'].bias / np.sqrt(3.0)
     s_ps = supply_std_pa / _SUPPLY_UNIT_PA
+    lam_mean, lam_std = unit_priors(base)['laminar']
+    lam_std = max(lam_std, 1e-6)
 
     def resid(theta, c=cond):
         at = with_conditions(base, dataclasses.replace(
-            c, supply_pressure_pa=c.supply_pressure_pa + theta[4] * _SUPPLY_UNIT_PA), b)
-        r = (steady_map(xs, q, params=_params(at, theta[:4]))['p12_pa'] - p12) * w
-        return np.append(r, theta[4] / s_ps)
+            c, supply_pressure_pa=c.supply_pressure_pa + theta[5] * _SUPPLY_UNIT_PA), b)
+        r = (steady_map(xs, q, params=_params(at, np.delete(theta, 5)))['p12_pa'] - p12) * w
+        return np.append(r, [theta[5] / s_ps, (theta[6] - lam_mean) / lam_std])
 
-    starts = [np.array([c, o, 0.05, 2.0, 0.0]) for c in _START_C for o in _START_O]
+    starts = [np.array([c, o, 0.95, np.log10(lc), 2.0, 0.0, lam_mean])
+              for lc in _START_LC for c in _START_C for o in _START_O]
     costs = [float(np.sum(resid(s) ** 2)) for s in starts]
     best = None
-    for i in np.argsort(costs)[:2]:
+    for i in np.argsort(costs)[:_REFINED]:
         r = least_squares(resid, starts[i], bounds=(_LO, _HI), x_scale=_SCALE,
                           diff_step=1e-4, xtol=1e-10, ftol=1e-10)
         if best is None or r.cost < best.cost:
             best = r
     theta = best.x
-    dof = max(xs.size + 1 - theta.size, 1)
+    dof = max(xs.size + 2 - theta.size, 1)
     chi = float(np.sqrt(2.0 * best.cost / dof))
     jac = best.jac
     jtj_inv = np.linalg.pinv(jac.T @ jac)
@@ -206,13 +274,13 @@ def fit_curves(curves, cond: Conditions, base: PlantParams, bench=None,
         c2 = dataclasses.replace(cond, **{name: getattr(cond, name) + h})
         dr = (resid(theta, c2) - r0) / h
         sens[name] = -(jtj_inv @ (jac.T @ dr))
-    # Khsv = 0 (clean edges) and no leakage are physical bounds, not failures of the fit
-    at_bound = bool(np.any(np.isclose(theta[:2], _LO[:2], rtol=0, atol=1e-6))
-                    or np.any(np.isclose(theta[:4], _HI[:4], rtol=0, atol=1e-6)))
+    # no leakage is a physical bound, not a failure of the fit
+    at_bound = bool(np.any(np.isclose(theta[:4], _LO[:4], rtol=0, atol=1e-6))
+                    or np.any(np.isclose(theta[:5], _HI[:5], rtol=0, atol=1e-6)))
     return {'theta': theta, 'cov': cov, 'chi': chi, 'at_bound': at_bound,
-            'residual_pa': float(np.sqrt(np.mean((r0[:-1] / w) ** 2))),
+            'residual_pa': float(np.sqrt(np.mean((r0[:-2] / w) ** 2))),
             'n_used': int(xs.size), 'n_points': n_all, 'unsettled': unsettled,
-            'supply_offset_pa': float(theta[4] * _SUPPLY_UNIT_PA), 'sensitivity': sens}
+            'supply_offset_pa': float(theta[5] * _SUPPLY_UNIT_PA), 'sensitivity': sens}
 
 
 class ValveFitEstimator:
@@ -264,10 +332,17 @@ class ValveFitEstimator:
         lo, hi = self.bench.service['supply_pressure_pa']
         f = fit_curves(curves, conditions, self.params, self.bench,
                        (hi - lo) / np.sqrt(12.0) if conditions.assumed else None)
-        theta, cov = f['theta'][:4], f['cov'][:4, :4]
-        f['sensitivity'] = {k: v[:4] for k, v in f['sensitivity'].items()}
+        # reported: clearance, overlap, Khsv = 1 - kappa / (Cd w over nominal), leakage
+        pick = [0, 1, 2, 4]
+        edge_mean, edge_std = unit_priors(self.params)['edge']
+        to_item = np.diag([1.0, 1.0, -1.0 / edge_mean, 1.0])
+        theta = f['theta'][pick]
+        cov = to_item @ f['cov'][np.ix_(pick, pick)] @ to_item
+        theta = np.array([theta[0], theta[1], 1.0 - theta[2] / edge_mean, theta[3]])
+        f['sensitivity'] = {k: to_item @ v[pick] for k, v in f['sensitivity'].items()}
         scale = _UNITS
         var = np.abs(np.diag(cov))
+        var[2] += ((1.0 - theta[2]) * edge_std / edge_mean) ** 2   # Cd w unit to unit
         cstd = self.condition_std()
         if conditions.assumed:   # the whole service range is possible
             cstd = np.array([(hi - lo) / np.sqrt(12.0)
@@ -284,7 +359,7 @@ class ValveFitEstimator:
             mismatch.append(f'the valve model does not explain this test: residual '
                             f'{f["residual_pa"] / 1e3:.1f} kPa RMS, chi {f["chi"]:.2f}, limit '
                             f'{cal.chi_limit:.2f}')
-        if value[2] > k_hi + 2 * std[2]:
+        if value[2] > k_hi + 2 * std[2] or value[2] < k_lo - 2 * std[2]:
             mismatch.append(f'Khsv {value[2]:.3f} beyond the calibrated envelope '
                             f'[{k_lo:g}, {k_hi:g}]')
         if f['at_bound']:
@@ -301,5 +376,7 @@ class ValveFitEstimator:
             method=self.method, mismatch='; '.join(mismatch),
             extra={'valve_degradation': (float(value[2]), float(std[2])),
                    'leakage_coeff_m3_s_pa': (float(value[3]), float(std[3])), 'chi': f['chi'],
+                   'critical_flow_number': float(10.0 ** f['theta'][3]),
+                   'laminar_factor': float(10.0 ** f['theta'][6]),
                    'points_in_band': f['n_used'], 'points': f['n_points']},
             conditions=conditions.as_dict(), note='; '.join(notes))

@@ -1,6 +1,7 @@
 """Every plant parameter classified for the diagnosis of a fleet: ``config/tolerances.yaml``.
 
-Each settable parameter (:data:`eha_ros.physics.params.SETTABLE`) has one class (:data:`CLASSES`): a
+Each settable parameter (:data:`eha_ros.physics.params.SETTABLE`) has one class
+(:data:`CLASSES`): a
 condition the test bench measures, an item a test estimates, a nuisance drawn over its range, a
 negligible one (the shipped screening shows its whole range moves no estimate by 0.2 of its
 stated deviation), or a setting known exactly.  Nuisances and negligibles carry the range a real
@@ -17,7 +18,8 @@ import functools
 from .params import (DERIVED, SETTABLE, SPEC_BY_NAME, ParameterError, PlantParams, config_dir,
                      default_params, read_yaml, replace)
 
-__all__ = ['CLASSES', 'DRAWN', 'NEGLIGIBLE_SIGMA', 'Tolerance', 'load_tolerances']
+__all__ = ['CLASSES', 'DRAWN', 'NEGLIGIBLE_SIGMA', 'Tolerance', 'load_tolerances', 'draw_unit',
+           'uniform_moments']
 
 #: The classes, in the order of the file's header.
 CLASSES = ('measured', 'estimated', 'nuisance', 'negligible', 'setting')
@@ -112,4 +114,52 @@ def _load(path: str) -> dict:
             except ParameterError as exc:
                 raise ParameterError(f'{where}: range end {v:g} refused: {exc}') from None
         out[spec.name] = t
+    return out
+
+
+def draw_unit(rng, changes: dict | None = None, params: PlantParams | None = None,
+              classes=('nuisance',), only=None, exclude=(),
+              tolerances: dict | None = None) -> dict:
+    """Plant changes of one unit of a fleet: every parameter of ``classes`` (default the
+    nuisances; ``only``: those names of them) drawn uniform over its range about ``params``
+    (default nominal; ``exclude``: names left nominal, as parameters a test does not run),
+    in the file's order, one ``rng.uniform`` each, then ``changes`` (the
+    caller's wear, faults and conditions) on top; a ``ratio_of`` parameter (a dynamic
+    friction) is drawn as a factor on its reference's value in the result, so it follows a
+    drawn or a given breakaway friction.  The one sampler of the fleet sets, the calibrations
+    and the trainings."""
+    tol = tolerances or load_tolerances()
+    p = params or default_params()
+    changes = dict(changes or {})
+    out, ratios = {}, []
+    for name, t in tol.items():
+        if (t.klass not in classes or (only is not None and name not in only)
+                or name in exclude):
+            continue
+        x = float(rng.uniform(0.0, 1.0))
+        if t.ratio_of:
+            ratios.append((name, t, x))
+        else:
+            lo, hi = t.bounds(p)
+            out[name] = float(lo + x * (hi - lo))
+    out.update(changes)
+    for name, t, x in ratios:
+        if name in changes:
+            continue
+        ref = out.get(t.ratio_of, getattr(p, t.ratio_of))
+        out[name] = float((t.lo + x * (t.hi - t.lo)) * ref)
+    return out
+
+
+def uniform_moments(names, tolerances: dict | None = None,
+                    params: PlantParams | None = None) -> dict:
+    """``name -> (mean, std)`` of each drawn parameter's uniform range, relative to its
+    nominal value (a factor) where the range is relative, absolute otherwise."""
+    tol = tolerances or load_tolerances()
+    p = params or default_params()
+    out = {}
+    for n in names:
+        t = tol[n]
+        lo, hi = (t.lo, t.hi) if t.relative or t.ratio_of else t.bounds(p)
+        out[n] = (0.5 * (lo + hi), (hi - lo) / 12 ** 0.5)
     return out

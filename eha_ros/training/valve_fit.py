@@ -1,13 +1,14 @@
-"""Calibrate the settled valve test's fit (:mod:`eha_ros.health.valve_fit`) on drifted
-held-out tests and write ``valve_fit.npz``.
+"""Calibrate the settled valve test's fit (:mod:`eha_ros.health.valve_fit`) on a drawn
+fleet of held-out valves and write ``valve_fit.npz``.
 
 Calibration set
-    ``N_CAL`` valves drawn from stream ``SEED_CAL`` (:func:`drifted_cases`): clearance and
-    overlap uniform over :data:`eha_ros.physics.maps.WEAR_RANGES`; the measured conditions'
-    true values uniform over the service envelope of ``config/test_bench.yaml`` (the
-    temperature setting viscosity and density by the fluid law); every nuisance the valve
-    test sees (bulk modulus, Khsv, jack leakage) uniform over its range; the bench's sensor
-    errors from the case's seed.  Half the valves are measured without pressure noise, half
+    ``N_CAL`` valves drawn from stream ``SEED_CAL`` (:func:`drifted_cases`, ``fleet``):
+    clearance and overlap uniform over :data:`eha_ros.physics.maps.WEAR_RANGES`; the
+    measured conditions' true values uniform over the service envelope of
+    ``config/test_bench.yaml``; Khsv, jack leakage and bulk modulus uniform over the bench's
+    ranges; every other nuisance of ``config/tolerances.yaml`` uniform over its range (the
+    unit-to-unit tolerances and the fluid's condition); the bench's sensor errors from the
+    case's seed.  Half the valves are measured without pressure noise, half
     with 1 % (two sweeps, :mod:`eha_ros.sweep`).
 
 Calibration
@@ -20,6 +21,7 @@ Build: ``python -m eha_ros.training.valve_fit [--workers N]``.
 
 from __future__ import annotations
 
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -31,22 +33,33 @@ from eha_ros.health.valve_fit import FIT_FILE, FIT_NAMES, _load_cached
 from eha_ros.physics import default_params, params_to_dict
 from eha_ros.physics.bench import load_bench
 from eha_ros.physics.maps import WEAR_RANGES
+from eha_ros.physics.tolerances import draw_unit
 
 __all__ = ['N_CAL', 'SEED_CAL', 'VALVE_NUISANCE', 'drifted_cases', 'run_cases',
            'calibrate', 'build_artefact']
 
+# Run as a script, this module is the main module the sweep's spawned workers import again
+# before their single-thread settings apply: numba's pool must start with the same setting.
+if __name__ in ('__main__', '__mp_main__'):
+    os.environ.setdefault('NUMBA_NUM_THREADS', '1')
+
 N_CAL = 200
-SEED_CAL = 31
+SEED_CAL = 32
 #: The nuisances of ``config/test_bench.yaml`` the valve test's maps depend on.
 VALVE_NUISANCE = ('bulk_modulus_pa', 'valve_degradation', 'leakage_coeff_m3_s_pa')
 _CHI_MARGIN = 1.5
+#: Nuisances the settled valve test does not run: the torque motor's current noise (the
+#: test's pressures have their own, ``pressure_noise``).
+NOT_IN_TEST = ('noise_std_a', 'noise_sample_time_s')
 
 
 def drifted_cases(n: int, stream: int, *, wear: bool = True, drift: bool = True,
-                  overrides: dict | None = None) -> list:
+                  overrides: dict | None = None, fleet: bool = False) -> list:
     """``n`` valve-test cases (plant parameters and ``seed``) from ``default_rng([stream,
     i])``: wear uniform (or nominal), conditions and nuisances uniform over their envelopes
-    (or nominal), then ``overrides`` (plant names, or ``fluid_temperature_k``)."""
+    (or nominal); ``fleet``: then every nuisance of ``config/tolerances.yaml`` uniform over
+    its range (:func:`eha_ros.physics.tolerances.draw_unit`, after the seed: the other
+    draws are those of the set without it); then ``overrides`` (plant names)."""
     p = default_params()
     b = load_bench()
     out = []
@@ -65,6 +78,8 @@ def drifted_cases(n: int, stream: int, *, wear: bool = True, drift: bool = True,
             for name in VALVE_NUISANCE:
                 c[name] = float(rng.uniform(*b.nuisance_range(name, p)))
         seed = int(rng.integers(0, 2 ** 31 - 1))
+        if fleet:
+            c = draw_unit(rng, c, p, exclude=NOT_IN_TEST)
         over = dict(overrides or {})
         t = float(over.pop('fluid_temperature_k', t))
         if drift or t != p.fluid_temperature_k:
@@ -99,6 +114,10 @@ def calibrate(table, cases, factors_used) -> tuple:
     """``(factors, chi_limit, figures)`` from a calibration table (estimates made with
     ``factors_used``); rows that flag a mismatch are left out of the factors."""
     ok = np.array(table.column('status').to_pylist()) == 'ok'
+    if ok.sum() < 0.9 * len(cases):
+        errors = [e for e in table.column('error').to_pylist() if e]
+        raise RuntimeError(f'valve-fit calibration: {len(cases) - int(ok.sum())} of '
+                           f'{len(cases)} tests failed, the first: {errors[:1]}')
     mis = np.array(table.column('mismatch').to_pylist(), dtype=bool) & ok
     keep = ok & ~mis
     p = default_params()
@@ -125,7 +144,7 @@ def build_artefact(workers: int = 2, out: Path | None = None, progress=print) ->
     path = Path(out) if out is not None else shipped
     t0 = time.perf_counter()
     ident = np.ones(len(FIT_NAMES))
-    meta = {'kind': 'valve_fit', 'format': 1}
+    meta = {'kind': 'valve_fit', 'format': 2}
     # the estimates run with factors 1 and no chi limit: the sweep's workers load the shipped
     # file, which holds that stage only while the sweeps run (restored if they fail)
     before = shipped.read_bytes() if shipped.is_file() else None
@@ -134,7 +153,7 @@ def build_artefact(workers: int = 2, out: Path | None = None, progress=print) ->
     done = False
     try:
         half = N_CAL // 2
-        cases = drifted_cases(N_CAL, SEED_CAL)
+        cases = drifted_cases(N_CAL, SEED_CAL, fleet=True)
         clean = run_cases(cases[:half], workers=workers)
         noisy = run_cases(cases[half:], pressure_noise=0.01, workers=workers)
         done = True
@@ -152,6 +171,7 @@ def build_artefact(workers: int = 2, out: Path | None = None, progress=print) ->
     meta.update({
         'stage': 'calibrated', 'fit': list(FIT_NAMES),
         'calibration_set': {'n': N_CAL, 'stream': SEED_CAL, 'pressure_noise': [0.0, 0.01],
+                            'fleet': 'every nuisance of config/tolerances.yaml',
                             'wear_ranges': {k: list(v) for k, v in WEAR_RANGES.items()},
                             'service': {k: list(v) for k, v in b.service.items()},
                             'nuisance': {k: list(b.nuisance_range(k)) for k in VALVE_NUISANCE}},
