@@ -16,7 +16,7 @@ from eha_ros.health.valve_fit import ValveFitEstimator
 from eha_ros.physics import default_params
 from eha_ros.physics.bench import (Conditions, ConditionSensors, load_bench, mean_conditions,
                                    measure_conditions, true_conditions)
-from eha_ros.physics.fluid import load_fluid
+from eha_ros.physics.params import fluid_law as load_fluid
 from eha_ros.physics.maintenance import ValveTest, valve_test_schedule
 from eha_ros.physics.maps import spool_grid, transient_map
 from eha_ros.physics.params import replace

@@ -24,8 +24,9 @@ import functools
 
 import numpy as np
 
-from .fluid import FluidLaw, load_fluid
-from .params import ParameterError, PlantParams, config_dir, default_params, read_yaml, replace
+from .fluid import FluidLaw
+from .params import (ParameterError, PlantParams, config_dir, default_params, fluid_law,
+                     read_yaml, replace)
 
 __all__ = ['CONDITIONS', 'Conditions', 'ConditionSensors', 'outside_ranges', 'FluidLaw',
            'TestBench', 'load_bench', 'true_conditions', 'measure_conditions',
@@ -99,7 +100,7 @@ def load_bench(path=None) -> TestBench:
     """Load ``config/test_bench.yaml`` (or ``path``); the fluid law is the datasheet's
     (:func:`eha_ros.physics.fluid.load_fluid`)."""
     path = path or config_dir() / 'test_bench.yaml'
-    return _load(str(path), default_params(), load_fluid())
+    return _load(str(path), default_params(), fluid_law())
 
 
 @functools.lru_cache(maxsize=8)

@@ -57,11 +57,11 @@ class FluidLaw:
         return 10.0 ** ((self.a - w) / self.b)
 
 
-def load_fluid(path=None) -> FluidLaw:
-    """The law of ``config/fluid.yaml`` (or ``path``); a one-line
-    :class:`~eha_ros.physics.params.ParameterError` if it is missing or non-physical."""
-    from .params import config_dir
-    path = Path(path) if path is not None else config_dir() / 'fluid.yaml'
+def load_fluid(path) -> FluidLaw:
+    """The law of the fluid file ``path`` (``config/fluid.yaml``:
+    :func:`eha_ros.physics.params.fluid_law` finds it); a one-line :class:`ValueError` if it
+    is missing or non-physical."""
+    path = Path(path)
     try:
         mtime = path.stat().st_mtime_ns
     except OSError:
@@ -70,31 +70,35 @@ def load_fluid(path=None) -> FluidLaw:
 
 
 def _num(doc, key, where):
-    from .params import ParameterError
     try:
         v = doc[key]
         value = float(v['value'] if isinstance(v, dict) else v)
     except (KeyError, TypeError, ValueError):
-        raise ParameterError(f'{where}: {key} must be a number') from None
+        raise ValueError(f'{where}: {key} must be a number') from None
     if not math.isfinite(value):
-        raise ParameterError(f'{where}: {key} must be finite')
+        raise ValueError(f'{where}: {key} must be finite')
     return value
 
 
 @functools.lru_cache(maxsize=8)
 def _load(path: str, mtime) -> FluidLaw:
-    from .params import ParameterError, read_yaml
-    doc = read_yaml(path, 'fluid', 'name -> {value, unit, reason}')
+    import yaml
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise ValueError(f'cannot read fluid file {path}: {type(exc).__name__}') from None
+    if not isinstance(doc, dict):
+        raise ValueError(f'malformed fluid file {path}: expected a mapping')
     keys = ('reference_temperature_k', 'reference_viscosity_m2_s', 'reference_density_kg_m3',
             'hot_temperature_k', 'hot_viscosity_m2_s', 'expansion_coefficient_1_k')
     unknown = sorted(set(doc) - set(keys) - {'name'})
     if unknown:
-        raise ParameterError(f'{path}: unknown entry {unknown[0]}')
+        raise ValueError(f'{path}: unknown entry {unknown[0]}')
     t_ref, nu_ref, rho_ref, t_hot, nu_hot, alpha = (_num(doc, k, path) for k in keys)
     if not (t_hot > t_ref > 0 and 0 < nu_hot < nu_ref and alpha >= 0 and rho_ref > 0):
-        raise ParameterError(f'{path}: need hot_temperature_k > reference_temperature_k > 0, '
-                             'a hot viscosity below the reference one, a positive density and '
-                             'a non-negative expansion coefficient')
+        raise ValueError(f'{path}: need hot_temperature_k > reference_temperature_k > 0, '
+                         'a hot viscosity below the reference one, a positive density and '
+                         'a non-negative expansion coefficient')
     w = [math.log10(math.log10(nu * 1e6 + 0.7)) for nu in (nu_ref, nu_hot)]
     b = (w[0] - w[1]) / (math.log10(t_hot) - math.log10(t_ref))
     return FluidLaw(str(doc.get('name', 'fluid')), w[0] + b * math.log10(t_ref), b, t_ref,

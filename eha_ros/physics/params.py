@@ -26,6 +26,8 @@ from typing import Mapping
 
 import yaml
 
+from .fluid import FluidLaw, load_fluid
+
 __all__ = [
     'ParamSpec', 'SPECS', 'PlantParams', 'ParameterError', 'load_params', 'params_from_mapping',
     'default_params', 'params_hash', 'params_to_dict', 'config_dir', 'CD_MODELS',
@@ -250,8 +252,7 @@ def params_from_mapping(values: Mapping[str, object], source: str = 'parameters'
         except ParameterError as exc:
             raise ParameterError(f'{source}: {exc}') from None
         out[spec.name] = value
-    from .fluid import load_fluid
-    law = load_fluid()
+    law = fluid_law()
     t, factor = out['fluid_temperature_k'], out['fluid_condition_factor']
     for name, value in (('fluid_density_kg_m3', law.density_kg_m3(t)),
                         ('fluid_kinematic_viscosity_m2_s', law.viscosity_m2_s(t, factor))):
@@ -302,6 +303,14 @@ def config_dir() -> Path:
         if (c / 'eha_params.yaml').is_file():
             return c
     return candidates[-1]
+
+
+def fluid_law(path=None) -> FluidLaw:
+    """The fluid's datasheet law (``config/fluid.yaml`` or ``path``)."""
+    try:
+        return load_fluid(path if path is not None else config_dir() / 'fluid.yaml')
+    except ValueError as exc:
+        raise ParameterError(str(exc)) from None
 
 
 def read_yaml(path: Path | str, what: str, mapping: str = '') -> object:
