@@ -18,8 +18,7 @@ import functools
 from .params import (DERIVED, SETTABLE, SPEC_BY_NAME, ParameterError, PlantParams, config_dir,
                      default_params, read_yaml, replace)
 
-__all__ = ['CLASSES', 'DRAWN', 'NEGLIGIBLE_SIGMA', 'Tolerance', 'load_tolerances', 'draw_unit',
-           'uniform_moments']
+__all__ = ['CLASSES', 'DRAWN', 'NEGLIGIBLE_SIGMA', 'Tolerance', 'load_tolerances', 'draw_unit']
 
 #: The classes, in the order of the file's header.
 CLASSES = ('measured', 'estimated', 'nuisance', 'negligible', 'setting')
@@ -148,18 +147,4 @@ def draw_unit(rng, changes: dict | None = None, params: PlantParams | None = Non
             continue
         ref = out.get(t.ratio_of, getattr(p, t.ratio_of))
         out[name] = float((t.lo + x * (t.hi - t.lo)) * ref)
-    return out
-
-
-def uniform_moments(names, tolerances: dict | None = None,
-                    params: PlantParams | None = None) -> dict:
-    """``name -> (mean, std)`` of each drawn parameter's uniform range, relative to its
-    nominal value (a factor) where the range is relative, absolute otherwise."""
-    tol = tolerances or load_tolerances()
-    p = params or default_params()
-    out = {}
-    for n in names:
-        t = tol[n]
-        lo, hi = (t.lo, t.hi) if t.relative or t.ratio_of else t.bounds(p)
-        out[n] = (0.5 * (lo + hi), (hi - lo) / 12 ** 0.5)
     return out
