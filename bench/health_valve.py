@@ -17,7 +17,9 @@ Sets
 Per set and procedure: mean and max error in % of each range, 2-sigma coverage, items that
 read OK with a 2-sigma interval excluding the truth, mismatch flags (the reference's: its
 residual beyond ``residual_error_pa``), and the confusion table of the true level against the
-reported one.
+reported one; on ``fleet``, the share of each estimate's mean square error that each drawn
+parameter explains (a linear fit on the fleet itself), and a control: the same fit on each
+unit's steady map (``steady_readings``: what the hold's unsettled readings cost).
 
     python bench/health_valve.py [--workers 2] [--quick] [--smoke] [--sets fleet,...]
 
@@ -37,6 +39,7 @@ import numpy as np  # noqa: E402
 from eha_ros.graph import LEVEL_NAMES  # noqa: E402
 from eha_ros.health.thresholds import HealthEstimate, HealthThresholds, classify  # noqa: E402
 from eha_ros.physics.maps import WEAR_RANGES  # noqa: E402
+from eha_ros.physics.tolerances import error_shares  # noqa: E402
 from eha_ros.training.valve_fit import drifted_cases, run_cases  # noqa: E402
 
 #: Streams of the sets (the calibration uses 32; 31 before the fleet).
@@ -54,7 +57,10 @@ def _level(c, o, lim) -> int:
     return 0
 
 
-def figures(table, cases, procedure, lim) -> dict:
+def figures(table, cases, procedure, lim, shares: bool = False) -> dict:
+    """The figures of one set and procedure (module docstring); ``shares``: and the share of
+    each estimate's mean square error on the assessed valves each drawn parameter explains
+    (:func:`eha_ros.physics.tolerances.error_shares`, a linear fit on the set itself)."""
     col = {k: np.array(table.column(k).to_pylist()) for k in (
         'status', 'est_radial_clearance_m', 'est_radial_clearance_std_m', 'est_overlap_m',
         'est_overlap_std_m', 'pressure_residual_pa', 'mismatch')}
@@ -105,6 +111,14 @@ def figures(table, cases, procedure, lim) -> dict:
                     'mean_error_pct': round(float(err[m, j].mean()), 3),
                     'max_error_pct': round(float(err[m, j].max()), 3),
                     'within_2sigma': round(float(inside[m, j].mean()), 3), 'n': int(m.sum())}
+    if shares and assessed.any():
+        units = [c for c, a in zip(cases, assessed) if a]
+        try:
+            s = error_shares((est - truth)[assessed] / SPANS, units)
+            out['error_shares_assessed'] = {'clearance': s[0], 'overlap': s[1]}
+        except ValueError as exc:
+            out['error_shares_assessed'] = None
+            out['error_shares_not_computed'] = str(exc)
     return out
 
 
@@ -140,6 +154,54 @@ def sets(size: str = 'full') -> dict:
     return out
 
 
+def steady_readings(table, cases, lim) -> dict:
+    """The control of the settled fleet set: the same valve fit, at the same measured
+    conditions, on each unit's steady map (:func:`eha_ros.physics.maps.steady_map` of its
+    true parameters: the readings a hold long enough to settle every point would give), in
+    this process.  The difference to the set's figures is what the hold's unsettled
+    readings cost; ``fit_s``: the seconds each estimate took."""
+    from eha_ros.health.valve_fit import ValveFitEstimator
+    from eha_ros.physics import default_params
+    from eha_ros.physics.bench import Conditions
+    from eha_ros.physics.maintenance import valve_test_schedule
+    from eha_ros.physics.maps import spool_grid, steady_map
+    from eha_ros.physics.params import replace
+    import pyarrow as pa
+    sch = valve_test_schedule('settled')
+    est = ValveFitEstimator(replace(default_params(), noise_std_a=0.0))
+    rows, fit_s = [], []
+    for k, c in enumerate(cases):
+        p = replace(default_params(), **{n: v for n, v in c.items() if n != 'seed'})
+        grid = spool_grid(sch['n_points'], p.spool_stroke_m)
+        cond = Conditions(*(float(table.column(f'measured_{n}')[k].as_py()) for n in (
+            'supply_pressure_pa', 'return_pressure_pa', 'fluid_temperature_k')))
+        curves = [(q, grid, steady_map(grid, np.full(grid.size, q), params=p)['p12_pa'])
+                  for q in sch['flows_m3_s']]
+        t0 = time.perf_counter()
+        try:
+            h = est.estimate(curves, cond)
+            fit_s.append(time.perf_counter() - t0)
+        except ValueError as exc:   # too few points in band: as the sweep reports it
+            rows.append({'status': 'error', 'error': str(exc)})
+            continue
+        rows.append({'status': 'ok', 'est_radial_clearance_m': h.radial_clearance_m,
+                     'est_radial_clearance_std_m': h.radial_clearance_std_m,
+                     'est_overlap_m': h.overlap_m, 'est_overlap_std_m': h.overlap_std_m,
+                     'pressure_residual_pa': h.pressure_residual_pa,
+                     'mismatch': bool(h.mismatch)})
+    cols = ('status', 'est_radial_clearance_m', 'est_radial_clearance_std_m', 'est_overlap_m',
+            'est_overlap_std_m', 'pressure_residual_pa', 'mismatch')
+    t = pa.table({n: [r.get(n, np.nan if n != 'status' else 'error') for r in rows]
+                  for n in cols})
+    out = figures(t, cases, 'settled', lim)
+    out.pop('confusion', None)
+    out['note'] = 'control: the fit on each unit\'s steady map, not a test a bench runs'
+    if fit_s:   # the valve fit's own cost, one estimate at a time in this process
+        out['fit_s'] = {'mean': round(float(np.mean(fit_s)), 3),
+                        'max': round(float(np.max(fit_s)), 3), 'n': len(fit_s)}
+    return out
+
+
 def valve_drift(workers: int = 2, size: str = 'full', progress=None, only=SETS) -> dict:
     """The figures of the sets ``only`` (module docstring) of ``SIZES[size]``, both
     procedures."""
@@ -153,8 +215,11 @@ def valve_drift(workers: int = 2, size: str = 'full', progress=None, only=SETS) 
         for procedure in ('settled', 'reference'):
             t = time.perf_counter()
             table = run_cases(clean, procedure, noise, workers=workers)
-            out[name][procedure] = figures(table, clean, procedure, lim)
+            out[name][procedure] = figures(table, clean, procedure, lim,
+                                           shares=name == 'fleet')
             out[name][procedure]['wall_s'] = round(time.perf_counter() - t, 1)
+            if name == 'fleet' and procedure == 'settled':
+                out[name]['steady_readings'] = steady_readings(table, clean, lim)
             if name == 'beyond':
                 mis = np.array(table.column('mismatch').to_pylist(), dtype=bool)
                 if procedure == 'reference':

@@ -3,6 +3,7 @@
 import sys
 from pathlib import Path
 
+from hypothesis import given, settings, strategies as st
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
@@ -182,6 +183,37 @@ def test_steady_state_satisfies_flow_balance():
         scale = max(abs(qm), 1e-9)
         assert abs(q1l - qm) <= 1e-6 * scale
         assert abs(q2l - qm) <= 1e-6 * scale
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), rtol=st.sampled_from([1e-12, 1e-10, 1e-8]))
+def test_steady_map_to_a_tolerance_is_the_bisections_solution(seed, rtol):
+    """The Illinois solver (``rtol``) on random valves over and beyond the wear ranges, Cd
+    law, conditions, flows and positions (cavitating and saturated points included): the
+    bisections' pressures within ``rtol`` (plus the bisections' own resolution, which their
+    stop on the metered flow sets at 1e-7 of the pressure where the flow gain is small), and
+    the flow balance it solves."""
+    rng = np.random.default_rng([seed, 0x57EA])
+    lap = rng.uniform(-5e-6, 10e-6)
+    v = replace(P, radial_clearance_m=rng.uniform(0.3e-6, 10e-6), overlap_supply_m=lap,
+                overlap_return_m=lap, leakage_coeff_m3_s_pa=rng.uniform(0.0, 1e-11),
+                supply_pressure_pa=rng.uniform(1.5e7, 2.5e7),
+                return_pressure_pa=rng.uniform(2e5, 1.5e6),
+                discharge_coefficient=rng.uniform(0.3, 0.9),
+                critical_flow_number=10 ** rng.uniform(1.2, 3.5),
+                cd_model=str(rng.choice(['constant', 'reynolds'])))
+    xs = np.concatenate([spool_grid(21, v.spool_stroke_m), rng.uniform(-3e-4, 3e-4, 20)])
+    q = rng.uniform(-8e-5, 8e-5, xs.size) * rng.choice([0.0, 0.1, 1.0], xs.size)
+    exact = steady_map(xs, q, params=v)
+    fast = steady_map(xs, q, params=v, rtol=rtol)
+    for k in ('p1_pa', 'p2_pa'):
+        scale = np.maximum(1.0, np.abs(exact[k]))
+        assert np.all(np.abs(fast[k] - exact[k]) <= (rtol + 2e-7) * scale), k
+
+
+def test_steady_map_refuses_a_tolerance_outside_its_range():
+    with pytest.raises(ValueError, match='rtol'):
+        steady_map(np.zeros(2), np.zeros(2), rtol=0.1)
 
 
 def test_transient_and_steady_agree_open_and_differ_near_null():

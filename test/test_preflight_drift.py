@@ -14,11 +14,12 @@ from eha_ros.physics.bench import (Conditions, load_bench, mean_conditions,
                                    measure_conditions)
 from eha_ros.physics.maintenance import run_preflight
 from eha_ros.physics.params import replace
+from eha_ros.physics.tolerances import load_tolerances
 from eha_ros.training.preflight import case_params, cases
 
 P = default_params()
-#: A stream no build or benchmark set uses (those: 21-24 and 41-44).
-STREAM_TEST = 51
+#: Streams no build or benchmark set uses (those: 21-24 and 41-45).
+STREAM_TEST, STREAM_FLEET_TEST = 51, 52
 
 
 @pytest.fixture(scope='module')
@@ -83,14 +84,16 @@ def test_a_halved_bulk_modulus_is_refused(model):
         assert e.stds[f.name] >= _prior_std(f) * (1 - 1e-12)
 
 
-def test_deviations_hold_on_a_drifted_held_out_set(model):
+@pytest.mark.parametrize('fleet', [False, True], ids=['drift', 'fleet'])
+def test_deviations_hold_on_a_drifted_held_out_set(model, fleet):
     """40 drifted cases of a stream used by no build step (faults as for training, every
-    nuisance and condition drawn): per fault, the fraction within 2 sigma is at least
+    nuisance of the test bench and condition drawn; ``fleet``: and every nuisance of the
+    tolerances, on another stream): per fault, the fraction within 2 sigma is at least
     0.9 - 2 sqrt(0.9 x 0.1 / 40) = 0.805 (the goal of 0.9 less two binomial standard errors of
     a 40-case fraction), and no more than 2 cases are flagged as mismatch."""
     n = 40
     est, std, truth, flagged = [], [], [], 0
-    for case in cases(n, STREAM_TEST):
+    for case in cases(n, STREAM_FLEET_TEST if fleet else STREAM_TEST, fleet=fleet):
         p = case_params(case)
         e = model.estimate(run_preflight(p, seed=case[1]), mean_conditions(
             measure_conditions(p, case[1], CONDITION_READINGS)))
@@ -115,6 +118,11 @@ def test_the_artefact_records_what_it_was_built_over(model):
     for name in b.nuisance:
         assert m['nuisance'][name] == pytest.approx(list(b.nuisance_range(name)))
     assert set(m['valve_nuisance']) == {'radial_clearance_m', 'overlap_supply_m'}
+    # built over a fleet: every nuisance of the tolerances, the dynamic frictions as ratios
+    tol = load_tolerances()
+    assert set(m['fleet']) == {n for n, t in tol.items() if t.klass == 'nuisance'}
+    assert m['friction_ratio'] == {n: [t.lo, t.hi] for n, t in tol.items() if t.ratio_of}
+    assert set(m['ood']['parameters']) >= set(m['fleet']) - set(m['friction_ratio'])
     for name, rng in b.service.items():
         assert m['service'][name] == pytest.approx(list(rng))
     assert all(v >= 1.0 for v in m['calibration'].values())

@@ -183,3 +183,35 @@ def test_a_drawn_unit_is_a_valid_valve_inside_every_range(seed, static):
     replace(p, **u)   # raises if the unit is not a valid valve
     left = draw_unit(np.random.default_rng(seed), exclude=('noise_std_a',))
     assert 'noise_std_a' not in left
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), gain=st.floats(0.5, 3.0), noise=st.floats(0.0, 1.0))
+def test_error_shares_recover_a_known_linear_error(seed, gain, noise):
+    """On drawn units, an error made of one parameter's standardised value, a bias and noise
+    is shared in the proportions it was made of (closed form: gain**2, bias**2, noise**2 over
+    their sum), within four sampling deviations of the fitted gain on 400 units (the noise's
+    chance correlation with the parameter: sd(share) = 2 gain noise / sqrt(400) / mean(e**2))."""
+    import numpy as np
+    from eha_ros.physics.tolerances import error_shares
+    rng = np.random.default_rng([seed, 0x5A7E])
+    units = [draw_unit(rng, {'spool_static_friction_n': float(rng.uniform(0.5, 6.0))})
+             for _ in range(400)]
+    v = np.array([u['discharge_coefficient'] for u in units])
+    z = (v - v.mean()) / v.std()
+    e = gain * z + 0.5 + noise * rng.standard_normal(len(units))
+    s = error_shares(np.column_stack([e, np.zeros(len(e))]), units)
+    ms = float(np.mean(e ** 2))
+    top = next(iter(s[0]['parameters']))
+    assert top == 'discharge_coefficient'
+    tol = 4 * 2 * gain * noise / np.sqrt(len(units)) / ms + 0.005
+    assert s[0]['parameters'][top] == pytest.approx(gain ** 2 / ms, abs=tol)
+    assert s[0]['bias'] == pytest.approx(np.mean(e) ** 2 / ms, abs=1e-3)
+    parts = (sum(s[0]['parameters'].values()) + s[0]['other_parameters'] + s[0]['bias']
+             + s[0]['rest'])
+    assert parts == pytest.approx(1.0, abs=0.05)   # the sample's chance correlations
+    assert s[1] == {'bias': 0.0, 'parameters': {}, 'other_parameters': 0.0, 'rest': 0.0}
+    # dynamic frictions enter as their ratio; too few units for the parameters is refused
+    assert 'spool_dynamic_friction_n' in {k for u in units for k in u}
+    with pytest.raises(ValueError, match='more units than parameters'):
+        error_shares(e[:10], units[:10])

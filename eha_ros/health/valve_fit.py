@@ -95,6 +95,9 @@ def window_mean(samples) -> float:
 
 
 _SUPPLY_UNIT_PA = 1e4
+#: The fit's maps to this relative tolerance (:func:`~eha_ros.physics.maps.steady_map`'s
+#: Illinois solver, a tenth of the bisections' cost): far below the finite-difference steps.
+_MAP_RTOL = 1e-10
 # fit variables: clearance [um], overlap [um], kappa (the metering edges' flow coefficient
 # Cd (1 - Khsv) w over the nominal Cd w), log10 of the Cd law's critical flow number, jack
 # leakage [1e-13 m^3/(s Pa)], supply pressure less its reading [10 kPa], log10 of the
@@ -248,7 +251,8 @@ def fit_curves(curves, cond: Conditions, base: PlantParams, bench=None,
     def resid(theta, c=cond):
         at = with_conditions(base, dataclasses.replace(
             c, supply_pressure_pa=c.supply_pressure_pa + theta[5] * _SUPPLY_UNIT_PA), b)
-        r = (steady_map(xs, q, params=_params(at, np.delete(theta, 5)))['p12_pa'] - p12) * w
+        m = steady_map(xs, q, params=_params(at, np.delete(theta, 5)), rtol=_MAP_RTOL)
+        r = (m['p12_pa'] - p12) * w
         return np.append(r, [theta[5] / s_ps, (theta[6] - lam_mean) / lam_std])
 
     starts = [np.array([c, o, 0.95, np.log10(lc), 2.0, 0.0, lam_mean])

@@ -18,7 +18,8 @@ import functools
 from .params import (DERIVED, SETTABLE, SPEC_BY_NAME, ParameterError, PlantParams, config_dir,
                      default_params, read_yaml, replace)
 
-__all__ = ['CLASSES', 'DRAWN', 'NEGLIGIBLE_SIGMA', 'Tolerance', 'load_tolerances', 'draw_unit']
+__all__ = ['CLASSES', 'DRAWN', 'NEGLIGIBLE_SIGMA', 'Tolerance', 'load_tolerances', 'draw_unit',
+           'error_shares']
 
 #: The classes, in the order of the file's header.
 CLASSES = ('measured', 'estimated', 'nuisance', 'negligible', 'setting')
@@ -147,4 +148,51 @@ def draw_unit(rng, changes: dict | None = None, params: PlantParams | None = Non
             continue
         ref = out.get(t.ratio_of, getattr(p, t.ratio_of))
         out[name] = float((t.lo + x * (t.hi - t.lo)) * ref)
+    return out
+
+
+def error_shares(errors, units, top: int = 6, tolerances: dict | None = None) -> list:
+    """Per column of the signed ``errors`` ``(n, k)`` of a fleet set, how its mean square
+    is shared among the parameters drawn for the ``units`` (``n`` dicts of plant changes, as
+    :func:`draw_unit` gives): a least-squares fit of the error, linear in every parameter
+    that varies over the set (each standardised over the set; a ``ratio_of`` parameter as
+    its ratio; one of parameters set equal, as both overlaps), gives parameter ``j`` the share ``beta_j**2 / mean(e**2)`` - with independent
+    draws, the part of the error's variance that parameter explains alone.  Each entry:
+    ``{'bias': mean(e)**2 share, 'parameters': the ``top`` largest shares, name -> share,
+    'other_parameters': the sum of the others, 'rest': the remainder (nonlinear effects,
+    interactions, noise; 0 where the sample's correlations make the sum exceed 1)}``.  Needs more units than
+    varying parameters plus one; refused with a ValueError otherwise."""
+    import numpy as np
+    tol = tolerances or load_tolerances()
+    e = np.atleast_2d(np.asarray(errors, dtype=float).T).T
+    names = sorted({k for u in units for k in u if k in SPEC_BY_NAME and k != 'seed'})
+    cols, kept = [], []
+    for name in names:
+        t = tol.get(name)
+        ref = t.ratio_of if t is not None and t.ratio_of else None
+        v = np.array([u.get(name, np.nan) / (u.get(ref, np.nan) if ref else 1.0)
+                      for u in units], dtype=float)
+        if np.all(np.isfinite(v)) and np.std(v) > 1e-12 * (1.0 + np.abs(np.mean(v))):
+            z = (v - v.mean()) / v.std()
+            if not any(np.allclose(z, c) for c in cols):   # both overlaps set as one
+                cols.append(z)
+                kept.append(name)
+    if len(units) <= len(kept) + 1:
+        raise ValueError(f'error shares: {len(units)} units for {len(kept)} varying '
+                         f'parameters: needs more units than parameters plus one')
+    a = np.column_stack([np.ones(len(units))] + cols)
+    beta, *_ = np.linalg.lstsq(a, e, rcond=None)
+    out = []
+    for j in range(e.shape[1]):
+        ms = float(np.mean(e[:, j] ** 2))
+        if ms == 0.0:
+            out.append({'bias': 0.0, 'parameters': {}, 'other_parameters': 0.0, 'rest': 0.0})
+            continue
+        share = beta[1:, j] ** 2 / ms
+        order = np.argsort(share)[::-1][:top]
+        bias = float(np.mean(e[:, j]) ** 2 / ms)
+        out.append({'bias': round(bias, 3),
+                    'parameters': {kept[i]: round(float(share[i]), 3) for i in order},
+                    'other_parameters': round(float(np.sum(share) - np.sum(share[order])), 3),
+                    'rest': round(max(0.0, 1.0 - bias - float(np.sum(share))), 3)})
     return out

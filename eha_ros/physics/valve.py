@@ -40,7 +40,8 @@ from numba import njit
 
 __all__ = ['FluidConstants', 'fluid_constants', 'edge_constants', 'valve_constants', 'net_flow',
            'edge_coefficients', 'orifice_flow', 'valve_coefficients', 'valve_flows',
-           'chamber_step', 'orifice_pressure_drop', 'steady_pressures']
+           'chamber_step', 'orifice_pressure_drop', 'steady_pressures',
+           'steady_pressures_rtol']
 
 _TINY = 1e-300
 
@@ -172,16 +173,28 @@ def chamber_step(p1t, p2t, q1l, q2l, qm, stiffness_pa_m3, pvap_pa, dt):
 
 # --- steady state -------------------------------------------------------------------------------
 
+@njit(cache=True, inline='always')
+def _side_flow(k, pk, co, ps, pr):
+    """Q1L (``k = 0``) at P1 = ``pk`` or Q2L (``k = 1``) at P2 = ``pk``, from the edge
+    coefficients ``co`` of :func:`valve_coefficients` (as :func:`valve_flows`)."""
+    if k == 0:
+        return orifice_flow(ps - pk, co[0], co[1], co[2]) - orifice_flow(pk - pr, co[3], co[4],
+                                                                         co[5])
+    return orifice_flow(pk - pr, co[9], co[10], co[11]) - orifice_flow(ps - pk, co[6], co[7],
+                                                                       co[8])
+
+
 @njit(cache=True)
-def _chamber_pressure(k, xs, qm, p, lo, hi):
+def _chamber_pressure(k, co, ps, pr, qm, lo, hi):
     """P1 (``k = 0``) with Q1L(P1) = qm (Q1L decreases with P1) or P2 (``k = 1``) with
-    Q2L(P2) = qm (Q2L increases with P2), clipped at PVap."""
+    Q2L(P2) = qm (Q2L increases with P2), clipped at PVap; ``co``: the edge coefficients at
+    the spool position."""
     sgn = 1.0 if k == 0 else -1.0
-    if sgn * (valve_flows(xs, lo, lo, p)[k] - qm) <= 0.0:
+    if sgn * (_side_flow(k, lo, co, ps, pr) - qm) <= 0.0:
         return lo
     for _ in range(200):
         mid = 0.5 * (lo + hi)
-        if sgn * (valve_flows(xs, mid, mid, p)[k] - qm) > 0.0:
+        if sgn * (_side_flow(k, mid, co, ps, pr) - qm) > 0.0:
             lo = mid
         else:
             hi = mid
@@ -198,21 +211,25 @@ def steady_pressures(xs_m, q_m3_s, p, p_max_pa):
     chamber pressure is unique (each chamber's net inflow is monotonic in its pressure), and
     ``QM - q - Clk (P1(QM) - P2(QM))`` increases with QM, so nested bisections find the unique
     solution.  A chamber that would need a pressure below PVap sits at PVap (cavitating);
-    pressures are searched up to ``p_max_pa``.
+    pressures are searched up to ``p_max_pa``.  The edge coefficients at ``xs_m`` are
+    computed once (the flows are those of :func:`valve_flows`, bit for bit).
     """
     lo_p = p.vapour_pressure_pa
     clk = p.leakage_coeff_m3_s_pa
+    ps = p.supply_pressure_pa
+    pr = p.return_pressure_pa
+    co = valve_coefficients(xs_m, valve_constants(p))
     # bracket QM: flows achievable lie between the extremes of both chambers' curves
-    qmin = min(valve_flows(xs_m, p_max_pa, p_max_pa, p)[0], valve_flows(xs_m, lo_p, lo_p, p)[1])
-    qmax = max(valve_flows(xs_m, lo_p, lo_p, p)[0], valve_flows(xs_m, p_max_pa, p_max_pa, p)[1])
+    qmin = min(_side_flow(0, p_max_pa, co, ps, pr), _side_flow(1, lo_p, co, ps, pr))
+    qmax = max(_side_flow(0, lo_p, co, ps, pr), _side_flow(1, p_max_pa, co, ps, pr))
     qa = min(qmin, q_m3_s + clk * (lo_p - p_max_pa)) - 1e-12
     qb = max(qmax, q_m3_s + clk * (p_max_pa - lo_p)) + 1e-12
     p1 = lo_p
     p2 = lo_p
     for _ in range(200):
         qm = 0.5 * (qa + qb)
-        p1 = _chamber_pressure(0, xs_m, qm, p, lo_p, p_max_pa)
-        p2 = _chamber_pressure(1, xs_m, qm, p, lo_p, p_max_pa)
+        p1 = _chamber_pressure(0, co, ps, pr, qm, lo_p, p_max_pa)
+        p2 = _chamber_pressure(1, co, ps, pr, qm, lo_p, p_max_pa)
         r = qm - q_m3_s - clk * (p1 - p2)
         if r > 0.0:
             qb = qm
@@ -220,4 +237,106 @@ def steady_pressures(xs_m, q_m3_s, p, p_max_pa):
             qa = qm
         if qb - qa <= 1e-16 + 1e-13 * abs(qm):
             break
+    return p1, p2
+
+
+
+@njit(cache=True)
+def _chamber_pressure_rtol(k, co, ps, pr, qm, lo, hi, rtol):
+    """:func:`_chamber_pressure` by the Illinois method (a bracketing secant whose stale end
+    is halved; a bisection step wherever the bracket fails to halve in three steps), to a
+    bracket of ``rtol`` of the pressure."""
+    sgn = 1.0 if k == 0 else -1.0
+    fa = sgn * (_side_flow(k, lo, co, ps, pr) - qm)
+    if fa <= 0.0:
+        return lo
+    fb = sgn * (_side_flow(k, hi, co, ps, pr) - qm)
+    if fb >= 0.0:
+        return hi
+    a, b = lo, hi
+    side, width, slow = 0, b - a, 0
+    c = a
+    for _ in range(200):
+        if slow >= 3:
+            c = 0.5 * (a + b)
+            slow = 0
+        else:
+            c = (a * fb - b * fa) / (fb - fa)
+            if not a < c < b:
+                c = 0.5 * (a + b)
+        fc = sgn * (_side_flow(k, c, co, ps, pr) - qm)
+        if fc > 0.0:
+            a, fa = c, fc
+            if side == 1:
+                fb *= 0.5
+            side = 1
+        elif fc < 0.0:
+            b, fb = c, fc
+            if side == -1:
+                fa *= 0.5
+            side = -1
+        else:
+            return c
+        if b - a <= rtol * max(1.0, abs(c)):
+            break
+        if b - a > 0.5 * width:
+            slow += 1
+        else:
+            width, slow = b - a, 0
+    return c
+
+
+@njit(cache=True)
+def steady_pressures_rtol(xs_m, q_m3_s, p, p_max_pa, rtol):
+    """:func:`steady_pressures` to a relative tolerance ``rtol`` (of the pressures, and of
+    the metered flow), by the Illinois method at both levels: the same solution, found in a
+    tenth of the flow evaluations, for the estimators that need many maps and no more than
+    ``rtol``."""
+    lo_p = p.vapour_pressure_pa
+    clk = p.leakage_coeff_m3_s_pa
+    ps = p.supply_pressure_pa
+    pr = p.return_pressure_pa
+    co = valve_coefficients(xs_m, valve_constants(p))
+    qmin = min(_side_flow(0, p_max_pa, co, ps, pr), _side_flow(1, lo_p, co, ps, pr))
+    qmax = max(_side_flow(0, lo_p, co, ps, pr), _side_flow(1, p_max_pa, co, ps, pr))
+    a = min(qmin, q_m3_s + clk * (lo_p - p_max_pa)) - 1e-12
+    b = max(qmax, q_m3_s + clk * (p_max_pa - lo_p)) + 1e-12
+    # r(qm) = qm - q - clk (P1(qm) - P2(qm)) increases with qm: r(a) < 0 < r(b)
+    pa1 = _chamber_pressure_rtol(0, co, ps, pr, a, lo_p, p_max_pa, 0.1 * rtol)
+    pa2 = _chamber_pressure_rtol(1, co, ps, pr, a, lo_p, p_max_pa, 0.1 * rtol)
+    pb1 = _chamber_pressure_rtol(0, co, ps, pr, b, lo_p, p_max_pa, 0.1 * rtol)
+    pb2 = _chamber_pressure_rtol(1, co, ps, pr, b, lo_p, p_max_pa, 0.1 * rtol)
+    fa = a - q_m3_s - clk * (pa1 - pa2)
+    fb = b - q_m3_s - clk * (pb1 - pb2)
+    p1, p2 = pa1, pa2
+    side, width, slow = 0, b - a, 0
+    for _ in range(200):
+        if slow >= 3 or not fa < 0.0 < fb:
+            qm = 0.5 * (a + b)
+            slow = 0
+        else:
+            qm = (a * fb - b * fa) / (fb - fa)
+            if not a < qm < b:
+                qm = 0.5 * (a + b)
+        p1 = _chamber_pressure_rtol(0, co, ps, pr, qm, lo_p, p_max_pa, 0.1 * rtol)
+        p2 = _chamber_pressure_rtol(1, co, ps, pr, qm, lo_p, p_max_pa, 0.1 * rtol)
+        r = qm - q_m3_s - clk * (p1 - p2)
+        if r > 0.0:
+            b, fb = qm, r
+            if side == 1:
+                fa *= 0.5
+            side = 1
+        elif r < 0.0:
+            a, fa = qm, r
+            if side == -1:
+                fb *= 0.5
+            side = -1
+        else:
+            break
+        if b - a <= 1e-16 + rtol * abs(qm):
+            break
+        if b - a > 0.5 * width:
+            slow += 1
+        else:
+            width, slow = b - a, 0
     return p1, p2
