@@ -26,11 +26,10 @@ from numba import njit, prange
 
 from .params import PlantParams, default_params, params_hash, replace
 from .valve import (edge_constants, fluid_constants, net_flow, steady_pressures,
-                    steady_pressures_rtol, valve_coefficients, valve_flows)
+                    steady_pressures_rtol, valve_coefficients)
 
 __all__ = ['WEAR_RANGES', 'FLUID_PARAMETERS', 'FLOW_MAX_M3_S', 'fluid_hash', 'spool_grid',
-           'transient_map', 'transient_trace', 'steady_map', 'MapResult', 'settling_mask',
-           'settling_time_constant']
+           'transient_map', 'transient_trace', 'steady_map', 'MapResult', 'settling_mask']
 
 _BLOCK = 64
 
@@ -240,57 +239,6 @@ def steady_map(xs_m, q_m3_s, overlap_m=None, clearance_m=None, params=None,
                             float(rtol), p1, p2)
     return MapResult(p1_pa=p1.reshape(shape), p2_pa=p2.reshape(shape),
                      p12_pa=(p1 - p2).reshape(shape))
-
-
-@njit(cache=True)
-def _slowest_rate_kernel(xs, p1, p2, p, kvol, out):
-    clk = p.leakage_coeff_m3_s_pa
-    pvap = p.vapour_pressure_pa
-    for i in range(xs.size):
-        h1 = 1e-6 * max(1e5, abs(p1[i]))
-        h2 = 1e-6 * max(1e5, abs(p2[i]))
-        d1 = (valve_flows(xs[i], p1[i] + h1, p2[i], p)[0]
-              - valve_flows(xs[i], p1[i] - h1, p2[i], p)[0]) / (2.0 * h1)
-        d2 = (valve_flows(xs[i], p1[i], p2[i] + h2, p)[1]
-              - valve_flows(xs[i], p1[i], p2[i] - h2, p)[1]) / (2.0 * h2)
-        # d/dt (P1, P2) = kvol (Q1L(P1) - QM, QM - Q2L(P2)), QM = q + Clk (P1 - P2); a
-        # chamber held at the vapour pressure has no mode of its own
-        a = kvol * (d1 - clk)
-        d = kvol * (-clk - d2)
-        b = kvol * clk
-        cav1 = p1[i] <= pvap * (1.0 + 1e-9)
-        cav2 = p2[i] <= pvap * (1.0 + 1e-9)
-        if cav1 and cav2:
-            out[i] = math.inf
-        elif cav1:
-            out[i] = -d
-        elif cav2:
-            out[i] = -a
-        else:   # the eigenvalue of [[a, b], [b, d]] nearest zero (both negative)
-            mean = 0.5 * (a + d)
-            rad = math.sqrt(0.25 * (a - d) ** 2 + b * b)
-            out[i] = -(mean + rad)
-
-
-def settling_time_constant(xs_m, q_m3_s, params=None, steady: MapResult | None = None,
-                           rtol: float | None = None) -> np.ndarray:
-    """The slowest time constant [s] of the map's chambers about their steady state at each
-    point (spool position [m], imposed flow [m^3/s], the parameters' wear): ``1 / |lambda|``
-    of the pressure dynamics linearised there; 0 where both chambers sit at the vapour
-    pressure (nothing to settle), ``inf`` where no flow restores them.  Near null with covered edges, the restoring flows are the laminar leakages, and the time
-    constant reaches seconds: a reading taken after a hold of a tenth of that is not the
-    steady map's.  ``steady``: the points' :func:`steady_map` (computed otherwise, to
-    ``rtol``)."""
-    p = params if params is not None else default_params()
-    shape, (xs, q, _, _) = _broadcast(xs_m, q_m3_s, None, None, p)
-    st = steady if steady is not None else steady_map(xs, q, params=p, rtol=rtol)
-    rate = np.empty(xs.size)
-    _slowest_rate_kernel(xs, np.ravel(st['p1_pa']).astype(float),
-                         np.ravel(st['p2_pa']).astype(float), p,
-                         p.bulk_modulus_pa / p.map_volume_m3, rate)
-    with np.errstate(divide='ignore'):
-        tau = np.where(np.isinf(rate), 0.0, 1.0 / np.maximum(rate, 0.0))
-    return tau.reshape(shape)
 
 
 def settling_mask(transient: MapResult, steady: MapResult, rtol: float = 0.01,

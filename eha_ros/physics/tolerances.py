@@ -156,12 +156,13 @@ def error_shares(errors, units, top: int = 6, tolerances: dict | None = None) ->
     is shared among the parameters drawn for the ``units`` (``n`` dicts of plant changes, as
     :func:`draw_unit` gives): a least-squares fit of the error, linear in every parameter
     that varies over the set (each standardised over the set; a ``ratio_of`` parameter as
-    its ratio; one of parameters set equal, as both overlaps), gives parameter ``j`` the share ``beta_j**2 / mean(e**2)`` - with independent
+    its ratio; one of parameters set equal, as both overlaps), gives parameter ``j`` the
+    share ``beta_j**2 / mean(e**2)`` - with independent
     draws, the part of the error's variance that parameter explains alone.  Each entry:
     ``{'bias': mean(e)**2 share, 'parameters': the ``top`` largest shares, name -> share,
     'other_parameters': the sum of the others, 'rest': the remainder (nonlinear effects,
-    interactions, noise; 0 where the sample's correlations make the sum exceed 1)}``.  Needs more units than
-    varying parameters plus one; refused with a ValueError otherwise."""
+    interactions, noise; 0 where the sample's correlations make the sum exceed 1)}``.
+    Needs more units than varying parameters plus one; refused with a ValueError otherwise."""
     import numpy as np
     tol = tolerances or load_tolerances()
     e = np.atleast_2d(np.asarray(errors, dtype=float).T).T

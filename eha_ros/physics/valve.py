@@ -240,7 +240,6 @@ def steady_pressures(xs_m, q_m3_s, p, p_max_pa):
     return p1, p2
 
 
-
 @njit(cache=True)
 def _chamber_pressure_rtol(k, co, ps, pr, qm, lo, hi, rtol):
     """:func:`_chamber_pressure` by the Illinois method (a bracketing secant whose stale end
