@@ -32,7 +32,8 @@ import json
 import os
 import time
 
-os.environ.setdefault('NUMBA_NUM_THREADS', '1')   # the sweep's workers import this again
+if __name__ in ('__main__', '__mp_main__'):   # the sweep's workers import this again
+    os.environ.setdefault('NUMBA_NUM_THREADS', '1')
 
 import numpy as np  # noqa: E402
 
@@ -173,6 +174,9 @@ def steady_readings(table, cases, lim) -> dict:
     for k, c in enumerate(cases):
         p = replace(default_params(), **{n: v for n, v in c.items() if n != 'seed'})
         grid = spool_grid(sch['n_points'], p.spool_stroke_m)
+        if table.column('status')[k].as_py() != 'ok':   # no measured conditions: as the set
+            rows.append({'status': 'error', 'error': 'the test did not run'})
+            continue
         cond = Conditions(*(float(table.column(f'measured_{n}')[k].as_py()) for n in (
             'supply_pressure_pa', 'return_pressure_pa', 'fluid_temperature_k')))
         curves = [(q, grid, steady_map(grid, np.full(grid.size, q), params=p)['p12_pa'])
