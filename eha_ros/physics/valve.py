@@ -240,48 +240,67 @@ def steady_pressures(xs_m, q_m3_s, p, p_max_pa):
     return p1, p2
 
 
+@njit(cache=True, inline='always')
+def _illinois_point(a, fa, b, fb, slow):
+    """The next point of an Illinois search on the bracket ``[a, b]`` with ``fa < 0 < fb``:
+    the secant's root, or the midpoint after ``slow >= 3`` steps that did not halve the
+    bracket (or where the secant leaves it); returns (point, slow)."""
+    if slow >= 3 or not fa < 0.0 < fb:
+        return 0.5 * (a + b), 0
+    c = (a * fb - b * fa) / (fb - fa)
+    if not a < c < b:
+        c = 0.5 * (a + b)
+    return c, slow
+
+
+@njit(cache=True, inline='always')
+def _illinois_update(a, fa, b, fb, c, fc, side, width, slow):
+    """The bracket after the value ``fc`` at ``c``: the end of ``fc``'s sign moves to ``c``,
+    and the other end's value is halved when the same end moves twice in a row; ``slow``
+    counts the steps since the bracket last halved.  Returns (a, fa, b, fb, side, width,
+    slow, found), ``found`` where ``fc`` is 0."""
+    if fc < 0.0:
+        a, fa = c, fc
+        if side == -1:
+            fb *= 0.5
+        side = -1
+    elif fc > 0.0:
+        b, fb = c, fc
+        if side == 1:
+            fa *= 0.5
+        side = 1
+    else:
+        return a, fa, b, fb, side, width, slow, True
+    if b - a > 0.5 * width:
+        slow += 1
+    else:
+        width, slow = b - a, 0
+    return a, fa, b, fb, side, width, slow, False
+
+
 @njit(cache=True)
 def _chamber_pressure_rtol(k, co, ps, pr, qm, lo, hi, rtol):
     """:func:`_chamber_pressure` by the Illinois method (a bracketing secant whose stale end
     is halved; a bisection step wherever the bracket fails to halve in three steps), to a
     bracket of ``rtol`` of the pressure."""
     sgn = 1.0 if k == 0 else -1.0
-    fa = sgn * (_side_flow(k, lo, co, ps, pr) - qm)
-    if fa <= 0.0:
+    # g(P) = sgn (qm - flow(P)) increases with P
+    fa = sgn * (qm - _side_flow(k, lo, co, ps, pr))
+    if fa >= 0.0:
         return lo
-    fb = sgn * (_side_flow(k, hi, co, ps, pr) - qm)
-    if fb >= 0.0:
+    fb = sgn * (qm - _side_flow(k, hi, co, ps, pr))
+    if fb <= 0.0:
         return hi
     a, b = lo, hi
     side, width, slow = 0, b - a, 0
     c = a
     for _ in range(200):
-        if slow >= 3:
-            c = 0.5 * (a + b)
-            slow = 0
-        else:
-            c = (a * fb - b * fa) / (fb - fa)
-            if not a < c < b:
-                c = 0.5 * (a + b)
-        fc = sgn * (_side_flow(k, c, co, ps, pr) - qm)
-        if fc > 0.0:
-            a, fa = c, fc
-            if side == 1:
-                fb *= 0.5
-            side = 1
-        elif fc < 0.0:
-            b, fb = c, fc
-            if side == -1:
-                fa *= 0.5
-            side = -1
-        else:
-            return c
-        if b - a <= rtol * max(1.0, abs(c)):
+        c, slow = _illinois_point(a, fa, b, fb, slow)
+        fc = sgn * (qm - _side_flow(k, c, co, ps, pr))
+        a, fa, b, fb, side, width, slow, found = _illinois_update(a, fa, b, fb, c, fc, side,
+                                                                  width, slow)
+        if found or b - a <= rtol * max(1.0, abs(c)):
             break
-        if b - a > 0.5 * width:
-            slow += 1
-        else:
-            width, slow = b - a, 0
     return c
 
 
@@ -310,32 +329,12 @@ def steady_pressures_rtol(xs_m, q_m3_s, p, p_max_pa, rtol):
     p1, p2 = pa1, pa2
     side, width, slow = 0, b - a, 0
     for _ in range(200):
-        if slow >= 3 or not fa < 0.0 < fb:
-            qm = 0.5 * (a + b)
-            slow = 0
-        else:
-            qm = (a * fb - b * fa) / (fb - fa)
-            if not a < qm < b:
-                qm = 0.5 * (a + b)
+        qm, slow = _illinois_point(a, fa, b, fb, slow)
         p1 = _chamber_pressure_rtol(0, co, ps, pr, qm, lo_p, p_max_pa, 0.1 * rtol)
         p2 = _chamber_pressure_rtol(1, co, ps, pr, qm, lo_p, p_max_pa, 0.1 * rtol)
         r = qm - q_m3_s - clk * (p1 - p2)
-        if r > 0.0:
-            b, fb = qm, r
-            if side == 1:
-                fa *= 0.5
-            side = 1
-        elif r < 0.0:
-            a, fa = qm, r
-            if side == -1:
-                fb *= 0.5
-            side = -1
-        else:
+        a, fa, b, fb, side, width, slow, found = _illinois_update(a, fa, b, fb, qm, r, side,
+                                                                  width, slow)
+        if found or b - a <= 1e-16 + rtol * abs(qm):
             break
-        if b - a <= 1e-16 + rtol * abs(qm):
-            break
-        if b - a > 0.5 * width:
-            slow += 1
-        else:
-            width, slow = b - a, 0
     return p1, p2
