@@ -43,9 +43,9 @@ __all__ = ['NAMESPACE', 'TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOP
            'normalize_type', 'message_class', 'MODES', 'MODELS', 'REFERENCE_MODELS',
            'DYNAMIC_MODELS', 'ALGEBRAIC_MODELS',
            'STATUS_OK', 'STATUS_END_STOP', 'STATUS_CAVITATION', 'STATUS_DIVERGED',
-           'STATUS_VALVE_TEST', 'STATUS_PREFLIGHT', 'STATUS_NAMES', 'LEVEL_OK', 'LEVEL_WARN',
-           'LEVEL_ERROR', 'LEVEL_CANNOT_ASSESS', 'LEVEL_NAMES', 'REFERENCE_SCENARIOS', 'NODES',
-           'TIMING_SUFFIX']
+           'STATUS_VALVE_TEST', 'STATUS_PREFLIGHT', 'STATUS_STOPPED', 'STATUS_NAMES', 'LEVEL_OK',
+           'LEVEL_WARN', 'LEVEL_ERROR', 'LEVEL_CANNOT_ASSESS', 'LEVEL_NAMES',
+           'REFERENCE_SCENARIOS', 'NODES', 'TIMING_SUFFIX']
 
 #: Default namespace of the actuator's own topics (``/diagnostics`` and ``/clock`` are global).
 NAMESPACE = '/eha'
@@ -117,7 +117,9 @@ STATUS_CAVITATION = 2
 STATUS_DIVERGED = 3
 STATUS_VALVE_TEST = 4
 STATUS_PREFLIGHT = 5
-STATUS_NAMES = ('OK', 'END_STOP', 'CAVITATION', 'DIVERGED', 'VALVE_TEST', 'PREFLIGHT')
+STATUS_STOPPED = 6
+STATUS_NAMES = ('OK', 'END_STOP', 'CAVITATION', 'DIVERGED', 'VALVE_TEST', 'PREFLIGHT',
+                'STOPPED')
 
 #: Name of a node's timing status on ``/diagnostics``: ``'<node>: timing'`` (the health
 #: monitor's statuses have other names).

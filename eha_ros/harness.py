@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ['GraphConfig', 'GraphResult', 'GraphError', 'GraphConfigError', 'GraphDataLoss',
-           'GraphRun', 'run_graph', 'declared_parameters', 'COLLECTOR']
+           'GraphFault', 'GraphRun', 'run_graph', 'declared_parameters', 'COLLECTOR']
 
 STATE_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_s',
                 'spool_position_m', 'flapper_position_m', 'p1_pa', 'p2_pa', 'p12_pa',
@@ -47,7 +47,7 @@ STATE_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_
                 'supply_pressure_measured_pa', 'return_pressure_measured_pa',
                 'fluid_temperature_measured_k')
 _STATE_INTS = ('stamp_ns', 'tick', 'status', 'valve_test_point', 'valve_test_point_end',
-               'valve_test_procedure')
+               'valve_test_procedure', 'command_age_ticks', 'safe_action')
 
 #: The harness's own node, which collects what the graph publishes.
 COLLECTOR = 'eha_harness_collector'
@@ -82,6 +82,22 @@ class GraphDataLoss(GraphError):
     def __init__(self, message: str, result: 'GraphResult'):
         super().__init__(message)
         self.result = result
+
+
+class GraphFault(GraphDataLoss):
+    """A node died or hung mid-run: the rest were stopped cleanly (the recording closed
+    with everything up to the fault); ``result`` holds what arrived, its ``fault`` says which
+    node, when and how, and it is not :attr:`~GraphResult.complete`."""
+
+
+#: How long the plant may publish no state, once the graph has started, before the harness
+#: calls it hung (s): realtime; in lockstep the plant's own wait for a missing command
+#: (``command_wait_s``) comes first.
+HEARTBEAT_S = 1.0
+#: After a node other than the plant fails mid-run, how long the harness goes on collecting
+#: before it stops the rest (s): long enough for the plant's command watchdog (20 ms by
+#: default) to act, so that the result and the recording show the safe action.
+FAULT_GRACE_S = 0.3
 
 
 @dataclasses.dataclass
@@ -256,7 +272,12 @@ class GraphResult:
     published before the collector's subscription matched: the handshake makes these 0), and
     ``missing`` (lockstep: the ticks, from 0 to the last state, without a state, a position
     command or a current command; realtime: the ticks between the first and the last state
-    without a state). :attr:`complete` is true when all of these are empty or zero."""
+    without a state). ``fault``: a node that died or hung mid-run (``{'node', 'how',
+    'wall_s', 'sim_s'}``: how - its exit status, the signal that ended it, or how long it was
+    silent; when - wall seconds since the start and the last state's simulated time), else
+    None. :attr:`complete` is true when there is no fault and all of these are empty or zero.
+    The plant's command watchdog is in the states: ``command_age_ticks`` (a tick that ran on
+    a stale command) and ``safe_action`` (``ActuatorState.SAFE_*``)."""
 
     state: dict
     command: dict
@@ -273,6 +294,7 @@ class GraphResult:
     lost: dict = dataclasses.field(default_factory=dict)
     missed_at_start: dict = dataclasses.field(default_factory=dict)
     missing: dict = dataclasses.field(default_factory=dict)
+    fault: dict | None = None
 
     @property
     def sim_s(self) -> float:
@@ -281,13 +303,30 @@ class GraphResult:
 
     @property
     def complete(self) -> bool:
-        """Nothing lost, missed at the start or missing."""
-        return not (any(self.lost.values()) or any(self.missed_at_start.values())
+        """No fault, and nothing lost, missed at the start or missing."""
+        return not (self.fault or self.stopped or any(self.lost.values())
+                    or any(self.missed_at_start.values())
                     or any(len(v) for v in self.missing.values()))
 
+    @property
+    def stopped(self) -> bool:
+        """The plant's command watchdog stopped it (its last state: ``STATUS_STOPPED``)."""
+        from eha_ros.graph import STATUS_STOPPED
+        status = self.state.get('status')
+        return bool(status is not None and status.size and status[-1] == STATUS_STOPPED)
+
+    @property
+    def stale_ticks(self) -> int:
+        """States whose tick ran on a stale current command (``command_age_ticks`` > 0)."""
+        age = self.state.get('command_age_ticks')
+        return int(np.count_nonzero(age)) if age is not None else 0
+
     def loss_report(self) -> str:
-        """One line: what did not arrive (empty when :attr:`complete`)."""
-        parts = []
+        """One line: the fault and what did not arrive (empty when :attr:`complete`)."""
+        parts = [describe_fault(self.fault)] if self.fault else []
+        if self.stopped:
+            parts.append(f'the plant was stopped by its command watchdog at t = '
+                         f'{self.sim_s:.6g} s')
         for what, ticks in self.missing.items():
             if len(ticks):
                 parts.append(f'{len(ticks)} ticks without {what} (first: tick {ticks[0]})')
@@ -356,7 +395,7 @@ class _Collector:
         self.state_cols.update({f: array('q') for f in _STATE_INTS})
         self.command_cols = {'stamp_ns': array('q'), 'position_setpoint_m': array('d')}
         self.current_cols = {'stamp_ns': array('q'), 'current_command_a': array('d'),
-                             'arrival_s': array('d')}
+                             'arrival_s': array('d'), 'state_timeout': array('q')}
         self.health = []
         self.events, self.diagnostics = [], {}
         self.counters = {}
@@ -376,6 +415,8 @@ class _Collector:
             cols['valve_test_point'].append(msg.valve_test_point)
             cols['valve_test_point_end'].append(int(msg.valve_test_point_end))
             cols['valve_test_procedure'].append(msg.valve_test_procedure)
+            cols['command_age_ticks'].append(msg.command_age_ticks)
+            cols['safe_action'].append(msg.safe_action)
 
         def on_command(msg, now):
             self.command_cols['stamp_ns'].append(stamp_to_ns(msg.header.stamp))
@@ -385,6 +426,7 @@ class _Collector:
             self.current_cols['stamp_ns'].append(stamp_to_ns(msg.header.stamp))
             self.current_cols['current_command_a'].append(msg.current_command_a)
             self.current_cols['arrival_s'].append(now)
+            self.current_cols['state_timeout'].append(int(msg.state_timeout))
 
         def on_diagnostics(msg, now):
             for st in msg.status:
@@ -461,8 +503,16 @@ class _Collector:
         if not self.n_states:
             return True
         last = self.last_stamp_ns
-        return (last in self.current_cols['stamp_ns'][-3:]
+        # a plant running on stale commands (a silent or dead controller) gets no answer
+        unanswered = self.state_cols['command_age_ticks'][-1] > 0
+        return ((unanswered or last in self.current_cols['stamp_ns'][-3:])
                 and last in self.command_cols['stamp_ns'][-3:])
+
+    @property
+    def last_arrival_s(self) -> float:
+        """``time.monotonic`` of the last state's receipt (0 before any)."""
+        arrivals = self.state_cols['arrival_s']
+        return arrivals[-1] if len(arrivals) else 0.0
 
     def result(self, config, t0: float) -> 'GraphResult':
         """What arrived; ``t0``: when the nodes were launched (``time.monotonic``)."""
@@ -556,6 +606,7 @@ class GraphRun:
         self.context = rclpy.Context()
         self.executor = self.collector = self.observer = None
         self.interrupted = False  # the run was stopped (``stop``) before its end
+        self.fault = None  # a node that died or hung mid-run (GraphResult.fault)
 
     @property
     def pids(self) -> dict:
@@ -609,6 +660,9 @@ class GraphRun:
         self._last_progress, self._last_count = time.monotonic(), 0
         self._start_deadline = self.t0 + _REPORT_DEADLINE_S
         self._coordinator_seen = False
+        plant = self.params['servovalve_plant']
+        self._heartbeat_s = (HEARTBEAT_S if self.config.mode == 'realtime'
+                             else float(plant.get('command_wait_s', 10.0)) + HEARTBEAT_S)
 
     def _due(self, delay: float) -> bool:
         """Whether a node delayed by ``delay`` s falls due (after the start with an observer)."""
@@ -644,12 +698,21 @@ class GraphRun:
         last messages arrive, stop the node processes; returns what the collector received."""
         while not self._step():
             pass
-        self._drain()
+        if self.fault is None:
+            self._drain()
+        elif self.fault['node'] != 'servovalve_plant':
+            end = time.monotonic() + FAULT_GRACE_S
+            while time.monotonic() < end:
+                self.executor.spin_once(timeout_sec=_Collector.POLL_S)
+                self.collector.poll(force=True)
         result = self.collector.result(self.config, self.t0)
         result.interrupted = self.interrupted
+        result.fault = self.fault
         failure = self._stop_processes()
         if failure is not None:
             raise GraphError(failure)
+        if self.fault is not None:
+            raise GraphFault(f'{describe_fault(self.fault)} (logs in {self.log_dir})', result)
         if self.config.mode == 'lockstep' and not self.interrupted and not result.complete:
             raise GraphDataLoss(f'lockstep run incomplete: {result.loss_report()}', result)
         return result
@@ -657,7 +720,7 @@ class GraphRun:
     def _step(self) -> bool:
         """One pass of the run: spin, take the collector's messages, launch the nodes that fell
         due; true once the run has ended.  Raises GraphError for a failed node or a stall."""
-        from eha_ros.graph import STATUS_DIVERGED
+        from eha_ros.graph import STATUS_DIVERGED, STATUS_STOPPED
         self.executor.spin_once(timeout_sec=_Collector.POLL_S)
         collector = self.collector
         if collector is not None:
@@ -669,12 +732,12 @@ class GraphRun:
             return True
         n_states = collector.n_states if collector is not None else 0
         if n_states and (collector.last_stamp_ns >= self.duration_ns
-                         or collector.last_status == STATUS_DIVERGED):
-            return True  # the end, or diverged: the plant has stopped
+                         or collector.last_status in (STATUS_DIVERGED, STATUS_STOPPED)):
+            return True  # the end, diverged, or stopped by its watchdog: the plant has stopped
         if self._node_ended():
             return True
         self._check_progress(n_states)
-        return False
+        return self.fault is not None
 
     def _node_ended(self) -> bool:
         """True when a node ended on a stop request (a terminal's Ctrl-C reached it before
@@ -688,9 +751,21 @@ class GraphRun:
             return True
         if exited:
             name, proc = exited[0], self.procs[exited[0]][0]
+            if self.collector is not None and self.collector.handshake.started:
+                self._fault(name, _how_it_ended(proc.returncode))   # mid-run
+                return True
             error = GraphConfigError if proc.returncode == 2 else GraphError  # 2: refused
             raise error(_exit_message(name, proc.returncode, self.log_dir))
         return False
+
+    def _fault(self, node: str, how: str) -> None:
+        """Record that ``node`` failed mid-run (:attr:`GraphResult.fault`)."""
+        c = self.collector
+        start = c.handshake.start_monotonic_ns() * 1e-9
+        sim = c.state_cols['sim_time_s']
+        self.fault = {'node': node, 'how': how,
+                      'wall_s': round(max(0.0, time.monotonic() - start), 3),
+                      'sim_s': float(sim[-1]) if len(sim) else 0.0}
 
     def _check_progress(self, n_states: int) -> None:
         """Raise GraphError for a handshake not complete in time or a stall of ``timeout_s``."""
@@ -712,6 +787,10 @@ class GraphRun:
                                  f'{problem} (logs in {self.log_dir})')
         elif n_states != self._last_count:
             self._last_count, self._last_progress = n_states, now
+        elif self._heartbeat_s is not None and now - max(
+                self._last_progress, self.collector.handshake.start_monotonic_ns() * 1e-9
+        ) > self._heartbeat_s:
+            self._fault('servovalve_plant', f'no state for {self._heartbeat_s:g} s (hung)')
         elif now - self._last_progress > self.timeout_s:
             raise GraphError(f'no plant state for {self.timeout_s:g} s (after {self._last_count} '
                              f'states): the graph stalled (logs in {self.log_dir})')
@@ -743,9 +822,10 @@ class GraphRun:
             end = time.monotonic() + _GRACE_S
             while time.monotonic() < end and any(p.poll() is None for p, _ in self.procs.values()):
                 time.sleep(0.05)
-        for proc, _ in self.procs.values():
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
+        hung = self.fault['node'] if self.fault and 'hung' in self.fault['how'] else None
+        for name, (proc, _) in self.procs.items():
+            if proc.poll() is None:  # a hung node cannot stop itself
+                proc.send_signal(signal.SIGKILL if name == hung else signal.SIGINT)
         for proc, out in self.procs.values():
             try:
                 proc.wait(timeout=15)
@@ -815,6 +895,22 @@ def _exit_message(name: str, code: int, log_dir: Path) -> str:
     own = [line for line in lines if line.startswith(f'{name}: error:')]
     return own[-1] if own else (f'node {name} exited with status {code} before the run '
                                 f'completed (log: {log}): ' + ' | '.join(lines[-3:]))
+
+
+def describe_fault(fault: dict) -> str:
+    """One line: which node failed mid-run, how and when (:attr:`GraphResult.fault`)."""
+    return (f"node {fault['node']} failed mid-run: {fault['how']}, {fault['wall_s']:.3f} s "
+            f"after the start (last state at t = {fault['sim_s']:.6g} s)")
+
+
+def _how_it_ended(code: int) -> str:
+    """A process's exit status in words: the signal that ended it, or its status."""
+    if code < 0:
+        try:
+            return f'killed by {signal.Signals(-code).name}'
+        except ValueError:
+            return f'killed by signal {-code}'
+    return f'exited with status {code}'
 
 
 def _log_lines(path: Path) -> list:

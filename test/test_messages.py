@@ -34,8 +34,9 @@ def test_fields_in_file_order():
         'load_flow_m3_s', 'coil_current_a', 'torque_motor_force_n', 'sim_time_s', 'tick',
         'model', 'status', 'valve_test_point', 'valve_test_point_end', 'valve_test_procedure',
         'supply_pressure_measured_pa', 'return_pressure_measured_pa',
-        'fluid_temperature_measured_k']
+        'fluid_temperature_measured_k', 'command_age_ticks', 'safe_action']
     assert ActuatorState.get_fields_and_field_types()['tick'] == 'uint64'
+    assert ActuatorState.get_fields_and_field_types()['command_age_ticks'] == 'uint32'
     assert ActuatorState.get_fields_and_field_types()['status'] == 'uint8'
     assert list(HealthStatus.get_fields_and_field_types()) == [
         'header', 'radial_clearance_m', 'radial_clearance_std_m', 'overlap_m', 'overlap_std_m',
@@ -50,7 +51,11 @@ def test_constants():
 
     assert (ActuatorState.STATUS_OK, ActuatorState.STATUS_END_STOP,
             ActuatorState.STATUS_CAVITATION, ActuatorState.STATUS_DIVERGED,
-            ActuatorState.STATUS_VALVE_TEST, ActuatorState.STATUS_PREFLIGHT) == (0, 1, 2, 3, 4, 5)
+            ActuatorState.STATUS_VALVE_TEST, ActuatorState.STATUS_PREFLIGHT,
+            ActuatorState.STATUS_STOPPED) == (0, 1, 2, 3, 4, 5, 6)
+    from eha_ros.watchdog import SAFE_CODES, SAFE_NONE
+    assert ActuatorState.SAFE_NONE == SAFE_NONE
+    assert {a: getattr(ActuatorState, f'SAFE_{a.upper()}') for a in SAFE_CODES} == SAFE_CODES
     assert (HealthStatus.LEVEL_OK, HealthStatus.LEVEL_WARN, HealthStatus.LEVEL_ERROR,
             HealthStatus.LEVEL_CANNOT_ASSESS) == (0, 1, 2, 3)
     assert (ActuatorState.VALVE_TEST_REFERENCE, ActuatorState.VALVE_TEST_SETTLED) == (0, 1)

@@ -35,11 +35,12 @@ def test_package_messages_are_valid():
         'ActuatorCommand', 'ActuatorState', 'GraphEvent', 'HealthStatus', 'ServovalveCommand']
     assert dependencies == ['builtin_interfaces', 'std_msgs']  # dependencies first
     state = {s.name: s for s in specs}['ActuatorState']
-    assert len(state.fields) == 22
+    assert len(state.fields) == 24
     assert {c.name: c.value for c in state.constants} == {
         'STATUS_OK': 0, 'STATUS_END_STOP': 1, 'STATUS_CAVITATION': 2, 'STATUS_DIVERGED': 3,
-        'STATUS_VALVE_TEST': 4, 'STATUS_PREFLIGHT': 5, 'VALVE_TEST_REFERENCE': 0,
-        'VALVE_TEST_SETTLED': 1}
+        'STATUS_VALVE_TEST': 4, 'STATUS_PREFLIGHT': 5, 'STATUS_STOPPED': 6,
+        'VALVE_TEST_REFERENCE': 0, 'VALVE_TEST_SETTLED': 1, 'SAFE_NONE': 0, 'SAFE_HOLD': 1,
+        'SAFE_NULL_CURRENT': 2, 'SAFE_STOP': 3}
 
 
 @pytest.mark.parametrize('line, field, reason', [

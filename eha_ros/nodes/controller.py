@@ -14,6 +14,17 @@ that tick (matching stamps), then answers with the current for that tick; a repe
 first tick whose time is at least T, before that tick's control update, and published on
 ``/eha/events``; live gain sets are published there too.
 
+``silent`` (an event switch, ``'T:silent=1'``): from the first tick whose time is at least T
+the controller publishes no current command (a dropped controller, on the simulation clock, so
+a lockstep run with it is repeatable); ``'T:silent=0'`` resumes.  The plant's command watchdog
+takes over meanwhile.
+
+State watchdog: once the graph has started, when no plant state has arrived for
+``state_timeout_s`` of wall time (a dead or hung plant), the controller stops commanding: it
+publishes one null current command flagged ``state_timeout``, logs the tick of the last
+state, and shows ``controller: state watchdog`` as ERROR on ``/diagnostics``; the next state
+resumes control, and it says so.
+
 The arithmetic is :class:`eha_ros.physics.plant.PositionController`, the same as the
 physics-only closed loop.  Parameters: ``kp_a_m``, ``ki_a_m_s``, ``kd_a_s_m``,
 ``current_limit_a`` (defaults from ``params_file``), ``rate_hz``, ``mode``, ``trigger``,
@@ -30,7 +41,7 @@ from rclpy.node import Node
 from eha_ros.graph import TOPIC_DIAGNOSTICS
 from eha_ros.msg import ActuatorCommand, ActuatorState, ServovalveCommand
 from eha_ros.physics import ParameterError, load_params
-from eha_ros.physics.events import CONTROLLER_RUNTIME, EventSchedule, parse_event
+from eha_ros.physics.events import CONTROLLER_RUNTIME, EventSchedule, parse_event, SWITCHES
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import PositionController
 
@@ -64,6 +75,9 @@ class Controller(Node):
         events = declare(self, 'events', [''], "gain changes on the simulation clock: "
                          "'T:name=value[,name=value]' entries, each applied at the first tick "
                          "whose time is at least T s (empty entries are ignored)")
+        self.state_timeout_s = declare(self, 'state_timeout_s', 0.25, 'state watchdog: stop '
+                                       'commanding after this long without a plant state [s] '
+                                       '(wall time)', 1e-3, 3600.0)
         realtime = declare_realtime(self)
         if self.trigger not in TRIGGERS:
             raise ParameterError(f'trigger {self.trigger!r} must be one of {", ".join(TRIGGERS)}')
@@ -74,7 +88,7 @@ class Controller(Node):
         self.params = self._params({})
         self.period_ns = round(self.period_s * 1e9)
         self.schedule = EventSchedule([parse_event(e) for e in events if e.strip()],
-                                      allowed=GAINS, period_ns=self.period_ns)
+                                      allowed=GAINS + ('silent',), period_ns=self.period_ns)
         self.schedule.validate(self.params)
         self.pid = PositionController(self.params, self.period_s)
         PositionController(self.params, self.period_s).update(0.0, 0.0)  # JIT before tick 0
@@ -90,6 +104,9 @@ class Controller(Node):
         self._state_ns = None  # lockstep: tick waiting for its command
         self._answered = (None, 0.0)  # lockstep: last tick answered and its current
         self.published = 0
+        self.silent = False          # the silent switch is on: no current commands
+        self._last_state_ns = None   # time.monotonic_ns of the last state
+        self._state_timed_out = False
         self.timing = TickTiming(self, 1.0 / self.period_s, self.mode == 'realtime')
         self.handshake = Handshake(self, on_start=self._on_start)
         for entity, topic in ((self.pub, TOPIC_SERVOVALVE), (command_sub, TOPIC_COMMAND),
@@ -99,7 +116,13 @@ class Controller(Node):
         apply_realtime_settings(self, realtime)
 
     def _on_start(self, start_ns: int, mode: str) -> None:
+        from rclpy.clock import Clock as RosClock, ClockType
         start_mono = self.handshake.start_monotonic_ns()
+        self._last_state_ns = max(start_mono, time.monotonic_ns())
+        steady = RosClock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(min(0.05, self.state_timeout_s / 4), self._on_state_watchdog,
+                          clock=steady)
+        self.create_timer(1.0, self._publish_state_watchdog, clock=steady)
         begin_timing(self, self.timing, start_mono, self._warm_up_s)
         if self.mode == 'realtime' and self.trigger == 'timer':
             at_start(self, start_mono,
@@ -112,7 +135,7 @@ class Controller(Node):
 
     def _on_set(self, changes):
         frozen = {'mode', 'rate_hz', 'params_file', 'trigger', 'events', 'thread_priority',
-                  'cpu_affinity', 'lock_memory'} & set(changes)
+                  'cpu_affinity', 'lock_memory', 'state_timeout_s'} & set(changes)
         if frozen:
             raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
         gains = {k: v for k, v in changes.items() if k in GAINS}
@@ -125,21 +148,61 @@ class Controller(Node):
         """Gain changes due at the tick stamped ``t_ns`` take effect before its update."""
         for ev in self.schedule.due(t_ns):
             changes = ev.as_dict()
-            self.params = replace(self.params, **changes)
-            self.pid.params = self.params
+            gains = {k: v for k, v in changes.items() if k not in SWITCHES}
+            if 'silent' in changes:
+                self.silent = bool(changes['silent'])
+            if gains:
+                self.params = replace(self.params, **gains)
+                self.pid.params = self.params
             self.events.publish(t_ns, 'schedule', ev.t_s, changes)
-            self.events.mirror(changes)
+            if gains:
+                self.events.mirror(gains)
 
-    def _send(self, stamp, current_a):
+    def _send(self, stamp, current_a, state_timeout: bool = False):
+        if self.silent:
+            return
         msg = ServovalveCommand()
         msg.header.stamp = stamp
         msg.header.frame_id = 'jack'
         msg.current_command_a = float(current_a)
+        msg.state_timeout = state_timeout
         self.pub.publish(msg)
         self.published += 1
 
+    # state watchdog -------------------------------------------------------------------------
+    def _on_state_watchdog(self):
+        if self._last_state_ns is None or self._state_timed_out:
+            return
+        quiet_s = (time.monotonic_ns() - self._last_state_ns) * 1e-9
+        if quiet_s < self.state_timeout_s:
+            return
+        self._state_timed_out = True
+        self.get_logger().error(f'no plant state for {quiet_s:.3g} s (the last at t = '
+                                f'{self._stamp_ns * 1e-9:.6g} s): null current, control stopped')
+        self._send(self.get_clock().now().to_msg(), 0.0, state_timeout=True)
+        self._publish_state_watchdog()
+
+    def _publish_state_watchdog(self):
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+        st = DiagnosticStatus(name=self.get_name() + ': state watchdog',
+                              hardware_id=self.get_fully_qualified_name())
+        if self._state_timed_out:
+            st.level = DiagnosticStatus.ERROR
+            st.message = (f'no plant state for {self.state_timeout_s:g} s since t = '
+                          f'{self._stamp_ns * 1e-9:.6g} s: null current, control stopped')
+        else:
+            st.level, st.message = DiagnosticStatus.OK, 'plant states arriving'
+        st.values = [KeyValue(key='Timeout (s)', value=str(self.state_timeout_s)),
+                     KeyValue(key='Last state (s)', value=str(self._stamp_ns * 1e-9))]
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [st]
+        self.timing.pub.publish(msg)
+
     # realtime -------------------------------------------------------------------------------
     def _on_timer(self):
+        if self._state_timed_out:
+            return  # no plant state: control stopped (the null current is sent)
         current = self.pid.update(self.command_m, self.measured_m)
         self._send(self.get_clock().now().to_msg(), current)
 
@@ -158,6 +221,13 @@ class Controller(Node):
             self._try_answer()
 
     def _on_state(self, msg: ActuatorState):
+        self._last_state_ns = time.monotonic_ns()
+        if self._state_timed_out:
+            self._state_timed_out = False
+            self.get_logger().warning(f'plant states resumed at t = '
+                                      f'{stamp_to_ns(msg.header.stamp) * 1e-9:.6g} s: control '
+                                      'resumes')
+            self._publish_state_watchdog()
         self.measured_m = msg.jack_position_measured_m
         self._stamp_ns = stamp_to_ns(msg.header.stamp)
         if self.schedule.pending:

@@ -24,7 +24,25 @@ simulation resumes from where it was, and the slip is counted and logged.
 Lockstep mode: the plant is the time source:
 it publishes ``/clock`` and the state of tick k, and advances to tick k+1 only when the
 ``ServovalveCommand`` stamped with tick k arrives; if none comes within ``resend_s`` of wall
-time it publishes tick k again.
+time it publishes tick k again.  If none has come ``command_wait_s`` after the state, the
+command counts as missing: the plant advances on the last one, and while commands stay
+missing it advances at the realtime pace (the ticks of each 10 ms watchdog period at once;
+only the last state of each batch can be answered), so that the command watchdog below runs
+its course on the simulation clock.
+
+Command watchdog (:class:`eha_ros.watchdog.TickWatchdog`): every operating tick counts the
+ticks since a current command last arrived for it (realtime: since the previous tick;
+lockstep: the answer stamped with the tick), and the state carries that count in
+``command_age_ticks``: a tick that ran on a stale command says so.  After
+``command_timeout_s`` without one, the plant applies ``command_timeout_action``: ``hold``
+(the last command stays), ``null_current`` (the default: zero coil current, what a servo
+amplifier does when it loses its command) or ``stop`` (that tick runs at null current, its
+state has status ``STATUS_STOPPED``, and the plant advances no further).  The action in force
+is in every state's ``safe_action``; ``/diagnostics`` shows ``servovalve_plant: command
+watchdog`` as ERROR with the reason and the tick it began, and ``/eha/events`` records the
+trip and the resumption (source ``watchdog``) with their ticks.  When commands return, the
+plant resumes and says so the same way.  The valve test and the pre-flight check ignore
+commands, so the watchdog counts only in operation.
 
 Valve test (``valve_test: true``): before operating, the plant runs the diagnostic valve test of
 :mod:`eha_ros.physics.maintenance` - its ``valve_test_procedure`` (the reference's map sweep, or
@@ -65,6 +83,7 @@ from eha_ros.physics.state import (CAVITATION, END_STOP, initial_state, OK,
                                    operating_condition)
 from eha_ros.physics.bench import ConditionSensors, load_bench
 from eha_ros.physics.maintenance import PreflightCheck, ValveTest, VALVE_TEST_PROCEDURES
+from eha_ros.watchdog import SAFE_ACTIONS, TickWatchdog
 
 from .common import (advertise, apply_realtime_settings, begin_timing, declare,
                      declare_physics, declare_realtime, EventChannel, MODES, ns_to_stamp,
@@ -135,6 +154,15 @@ class ServovalvePlant(Node):
                             'loop current steps and sines, jack free) before operating')
         self.max_catch_up = declare(self, 'max_catch_up', 50, 'realtime: most late ticks '
                                     'caught up at once; a longer stall slips', 1, 100000)
+        command_timeout_s = declare(self, 'command_timeout_s', 0.02, 'command watchdog: the '
+                                    'safe action follows this long without a current '
+                                    'command [s], counted in ticks (20 at 1 kHz: beyond the '
+                                    'late episodes of a loaded machine)', 1e-6, 60.0)
+        timeout_action = declare(self, 'command_timeout_action', 'null_current', 'command '
+                                 'watchdog: what follows the timeout', choices=SAFE_ACTIONS)
+        self.command_wait_s = declare(self, 'command_wait_s', 10.0, 'lockstep: a tick whose '
+                                      'command has not come this long after its state counts '
+                                      'as missing [s]', 0.01, 3600.0)
         if self.mode not in MODES:
             raise ParameterError(f'mode {self.mode!r} must be one of {", ".join(MODES)}')
         params = replace(base, **{n: self.get_parameter(n).value for n in PLANT_RUNTIME})
@@ -146,6 +174,10 @@ class ServovalvePlant(Node):
             raise ParameterError(f'the tick period {period_ns} ns must be a whole number of '
                                  f'dt_s = {dt_s:g} s')
         self.period_ns = period_ns
+        self.command_watchdog = TickWatchdog(command_timeout_s, period_ns, timeout_action)
+        self._fresh = False      # a current command arrived since the last tick
+        self._missing = False    # lockstep: the last tick's command was missing
+        self.stopped = False     # the watchdog's stop action ended the run
         self.schedule = EventSchedule([parse_event(e) for e in events if e.strip()],
                                       allowed=PLANT_RUNTIME, period_ns=period_ns)
         self.schedule.validate(params)
@@ -184,6 +216,7 @@ class ServovalvePlant(Node):
         self._steady = steady
         self._started = False
         self._last_pub_ns = 0
+        self._first_pub_ns, self._pub_tick_ns = 0, -1   # lockstep: the tick's first publication
         self.slipped_ticks = 0
         if self.mode == 'lockstep':
             self.clock_pub = advertise(self, Clock, TOPIC_CLOCK)
@@ -205,6 +238,7 @@ class ServovalvePlant(Node):
     # parameters --------------------------------------------------------------------------
     def _on_set(self, changes):
         frozen = {'model', 'dt_s', 'rate_hz', 'mode', 'seed', 'params_file', 'valve_test',
+                  'command_timeout_s', 'command_timeout_action', 'command_wait_s',
                   'valve_test_flows_m3_s', 'valve_test_procedure', 'preflight_check',
                   'handshake_nodes',
                   'handshake_timeout_s', 'start_delay_s', 'events', 'thread_priority',
@@ -224,6 +258,64 @@ class ServovalvePlant(Node):
             self.max_catch_up = int(changes['max_catch_up'])
         if 'resend_s' in changes:
             self.resend_s = float(changes['resend_s'])
+
+    # command watchdog --------------------------------------------------------------------
+    def _operating_current(self) -> float:
+        """Step the command watchdog for an operating tick; the current it runs on."""
+        tr = self.command_watchdog.step(self._fresh)
+        self._fresh = False
+        if tr is not None:
+            self._report_watchdog(tr)
+        action = self.command_watchdog.in_force
+        if action == 'stop':
+            self.done = self.stopped = True
+        return self.current_a if action in (None, 'hold') else 0.0
+
+    def _report_watchdog(self, tr) -> None:
+        """A trip or a resumption: logged, on ``/eha/events`` and on ``/diagnostics``."""
+        wd = self.command_watchdog
+        t_ns = self.plant.time_ns
+        if tr.kind == 'tripped':
+            self.get_logger().error(
+                f'no current command for {tr.age} ticks ({tr.age * self.period_ns * 1e-9:g} s) '
+                f'at t = {t_ns * 1e-9:.6g} s (tick {t_ns // self.period_ns}): {wd.action}')
+        else:
+            self.get_logger().warning(
+                f'current commands resumed at t = {t_ns * 1e-9:.6g} s (tick '
+                f'{t_ns // self.period_ns}) after {tr.age} ticks without one')
+        self._watchdog_began = (t_ns // self.period_ns, t_ns) if tr.kind == 'tripped' else None
+        self.events.publish(t_ns, 'watchdog', math.nan,
+                            {'safe_action': wd.code, 'command_age_ticks': tr.age})
+        self._publish_watchdog()
+
+    def _publish_watchdog(self) -> None:
+        """``servovalve_plant: command watchdog`` on ``/diagnostics``: ERROR while an action is
+        in force (with the reason and the tick it began), WARN after stale ticks, else OK."""
+        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+        wd = self.command_watchdog
+        began = getattr(self, '_watchdog_began', None)
+        if wd.in_force is not None and began is not None:
+            level = DiagnosticStatus.ERROR
+            message = (f'no current command for {wd.timeout_ticks} ticks: {wd.action} since '
+                       f'tick {began[0]} (t = {began[1] * 1e-9:.6g} s)')
+        elif wd.stale_ticks:
+            level = DiagnosticStatus.WARN
+            message = f'{wd.stale_ticks} ticks ran on a stale command since startup'
+        else:
+            level, message = DiagnosticStatus.OK, 'a current command for every tick'
+        values = {'Action': wd.action, 'Action in force': wd.in_force or 'none',
+                  'Timeout (ticks)': wd.timeout_ticks, 'Command age (ticks)': wd.age,
+                  'Stale ticks since startup': wd.stale_ticks,
+                  'Trips since startup': wd.trips,
+                  'Began at tick': began[0] if began else -1}
+        st = DiagnosticStatus(name=self.get_name() + ': command watchdog', message=message,
+                              hardware_id=self.get_fully_qualified_name())
+        st.level = level
+        st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [st]
+        self.timing.pub.publish(msg)
 
     def _apply_due_events(self) -> None:
         """Scheduled events due at this tick (time at least T) take effect before its steps;
@@ -255,14 +347,17 @@ class ServovalvePlant(Node):
                 self.preflight_last = self.ticks + 1
             else:
                 self.test_sample = None
-                self.plant.advance(self.current_a, self.steps_per_tick)
+                self.plant.advance(self._operating_current(), self.steps_per_tick)
         except (SimulationDiverged, FloatingPointError) as exc:
             self.diverged = True
             self.get_logger().error(str(exc))
             return True
         self.ticks += 1
         self.conditions = self.sensors.read(self.plant.params)[0]
-        if self.duration_s and self.plant.time_ns >= round(self.duration_s * 1e9):
+        if self.stopped:
+            self.get_logger().error(f'stopped at t = {self.plant.time_s:.6g} s by the command '
+                                    'watchdog')
+        elif self.duration_s and self.plant.time_ns >= round(self.duration_s * 1e9):
             self.done = True
             self.get_logger().info(f'scenario complete at t = {self.plant.time_s:.6g} s')
         return True
@@ -281,6 +376,8 @@ class ServovalvePlant(Node):
         msg.valve_test_point = 0
         msg.valve_test_point_end = False
         msg.valve_test_procedure = 0
+        msg.command_age_ticks = 0
+        msg.safe_action = 0
         c = self.conditions
         msg.supply_pressure_measured_pa = float(c[0])
         msg.return_pressure_measured_pa = float(c[1])
@@ -316,8 +413,13 @@ class ServovalvePlant(Node):
         if preflight:
             msg.valve_test_point = self.preflight_tick - 1
             msg.valve_test_point_end = self.preflight_tick == self.preflight.n_ticks
+        if t is None and not preflight:
+            msg.command_age_ticks = min(self.command_watchdog.age, 2 ** 32 - 1)
+            msg.safe_action = self.command_watchdog.code
         if self.diverged:
             msg.status = ActuatorState.STATUS_DIVERGED
+        elif self.stopped:
+            msg.status = ActuatorState.STATUS_STOPPED
         elif t is not None:
             msg.status = ActuatorState.STATUS_VALVE_TEST
         elif preflight:
@@ -333,6 +435,8 @@ class ServovalvePlant(Node):
             self.clock_pub.publish(clock)
         self.state_pub.publish(self._state_msg())
         self._last_pub_ns = RosClock(clock_type=ClockType.STEADY_TIME).now().nanoseconds
+        if self.plant.time_ns != self._pub_tick_ns:  # a new tick, not a re-sent one
+            self._pub_tick_ns, self._first_pub_ns = self.plant.time_ns, self._last_pub_ns
 
     # start -------------------------------------------------------------------------------
     def _on_start(self, start_ns: int, mode: str) -> None:
@@ -342,6 +446,7 @@ class ServovalvePlant(Node):
                       or self.handshake.start_monotonic_ns())
         begin_timing(self, self.timing, start_mono, self._warm_up_s)
         self._started = True
+        self.create_timer(1.0, self._publish_watchdog, clock=self._steady)
         if self.mode == 'lockstep':
             self._publish_tick()
             return
@@ -405,10 +510,12 @@ class ServovalvePlant(Node):
     def _on_command(self, msg: ServovalveCommand):
         if self.mode == 'realtime':
             self.current_a = msg.current_command_a
+            self._fresh = True
             return
         if stamp_to_ns(msg.header.stamp) != self.plant.time_ns:
             return  # an answer to a tick already advanced (a re-sent tick)
         self.current_a = msg.current_command_a
+        self._fresh, self._missing = True, False
         began = time.monotonic_ns()
         if self._advance():
             self._publish_tick()
@@ -425,7 +532,24 @@ class ServovalvePlant(Node):
         if self.mode != 'lockstep' or self.done or self.diverged:
             return
         now = self._steady.now().nanoseconds
-        if now - self._last_pub_ns > self.resend_s * 1e9:
+        waited = now - (self._last_pub_ns if self._missing else self._first_pub_ns)
+        if waited > (0.009 if self._missing else self.command_wait_s) * 1e9:
+            # the command of this tick is missing: advance on the last one (the watchdog counts)
+            if not self._missing:
+                self.get_logger().error(f'no command for tick t = {self.plant.time_s:.6g} s in '
+                                        f'{waited * 1e-9:.3g} s: advancing without it')
+            # while commands stay missing, at the realtime pace: the ticks of the wait at once
+            n = max(1, min(10, waited // self.period_ns)) if self._missing else 1
+            self._missing = True
+            began = time.monotonic_ns()
+            for _ in range(n):
+                if not self._advance():
+                    break
+                self._publish_tick()
+                self.timing.tick(began)
+            self.timing.busy(began)
+            return
+        if now - self._last_pub_ns > self.resend_s * 1e9 and not self._missing:
             self.get_logger().warning(f'no command for tick t = {self.plant.time_s:.6g} s: '
                                       're-publishing it')
             self.timing.resent += 1

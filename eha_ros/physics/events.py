@@ -25,7 +25,8 @@ from typing import Iterable, Mapping
 from .params import (SPEC_BY_NAME, ParameterError, PlantParams, params_from_mapping,
                      params_to_dict)
 
-__all__ = ['PLANT_RUNTIME', 'CONTROLLER_RUNTIME', 'EVENT_NODES', 'Event', 'EventSchedule',
+__all__ = ['PLANT_RUNTIME', 'CONTROLLER_RUNTIME', 'SWITCHES', 'EVENT_NODES', 'Event',
+           'EventSchedule',
            'parse_event', 'format_event', 'node_events']
 
 #: Plant parameters that may change while it runs: wear, degradation and load.
@@ -37,6 +38,12 @@ PLANT_RUNTIME = ('overlap_supply_m', 'overlap_return_m', 'radial_clearance_m',
 
 #: Controller parameters that may change while it runs: the PID gains and the current limit.
 CONTROLLER_RUNTIME = ('kp_a_m', 'ki_a_m_s', 'kd_a_s_m', 'current_limit_a')
+
+#: Switches an event may set besides the parameters, 0 or 1, with what they do: the node
+#: applies them itself (they are no physical parameter).  ``silent``: the controller stops
+#: publishing current commands (1: a dropped controller, on the simulation clock) or resumes
+#: (0).
+SWITCHES = {'silent': 'the controller stops (1) or resumes (0) its current commands'}
 
 
 def _describe(t_s, changes) -> str:
@@ -169,7 +176,7 @@ class EventSchedule:
                  allowed: tuple = PLANT_RUNTIME + CONTROLLER_RUNTIME,
                  period_ns: int | None = None):
         self.allowed = tuple(allowed)
-        bad = [n for n in self.allowed if n not in SPEC_BY_NAME]
+        bad = [n for n in self.allowed if n not in SPEC_BY_NAME and n not in SWITCHES]
         if bad:
             raise ParameterError(f'allowed names {", ".join(bad)} are not parameters')
         if period_ns is not None and not (isinstance(period_ns, Integral) and period_ns >= 1):
@@ -187,10 +194,13 @@ class EventSchedule:
                     raise ParameterError(f'event {item!r} is not an Event, a (t_s, {{name: '
                                          'value}}) pair or a text T:name=value') from None
                 item = Event(t_s, changes)
-            for name, _ in item.changes:
+            for name, value in item.changes:
                 if name not in self.allowed:
                     raise ParameterError(f'event {format_event(item)!r}: '
                                          f'{_refusal(name, self.allowed)}')
+                if name in SWITCHES and value not in (0.0, 1.0):
+                    raise ParameterError(f'event {format_event(item)!r}: switch {name} must '
+                                         'be 0 or 1')
             evs.append(item)
         self._events = tuple(sorted(evs, key=lambda e: e.t_s))
         self._next = 0
@@ -225,7 +235,7 @@ class EventSchedule:
         out = []
         values = params_to_dict(params)
         for ev in self._events:
-            values.update(ev.changes)
+            values.update((n, v) for n, v in ev.changes if n not in SWITCHES)
             out.append(params_from_mapping(values, source=f'event {format_event(ev)!r}'))
         return out
 
@@ -246,7 +256,8 @@ class EventSchedule:
 
 
 #: The nodes that take events, and the parameters each may change while running.
-EVENT_NODES = {'servovalve_plant': PLANT_RUNTIME, 'controller': CONTROLLER_RUNTIME}
+EVENT_NODES = {'servovalve_plant': PLANT_RUNTIME,
+               'controller': CONTROLLER_RUNTIME + ('silent',)}
 
 
 def node_events(where: str, events) -> tuple:

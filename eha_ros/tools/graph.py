@@ -323,6 +323,10 @@ def summarize(result, processes: bool, recording_info=None) -> dict:
         'data_complete': result.complete,
         'data_loss': result.loss_report(),
         'diverged': bool(st['status'].size and st['status'][-1] == graph.STATUS_DIVERGED),
+        'fault': result.fault,
+        'stopped': result.stopped,
+        'stale_command_ticks': result.stale_ticks,
+        'safe_action_ticks': int((st['safe_action'] != 0).sum()),
         'events': result.events,
     }
     if cfg.mode == 'lockstep':
@@ -372,6 +376,9 @@ def _print_text(summary: dict, out=sys.stdout) -> None:
     print(f'  {s["states"]} states ({s["ticks_missing"]} ticks missing), '
           f'{s["current_commands"]} current commands'
           + ('; the plant DIVERGED' if s['diverged'] else ''), file=out)
+    if s['stale_command_ticks'] or s['safe_action_ticks']:
+        print(f'  {s["stale_command_ticks"]} ticks ran on a stale current command, '
+              f'{s["safe_action_ticks"]} on the command watchdog\'s safe action', file=out)
     if not s['data_complete']:
         print(f'  DATA INCOMPLETE: {s["data_loss"]}', file=out)
     if 'final_jack_position_m' in s:
@@ -493,9 +500,13 @@ def main(argv=None) -> int:
     except GraphConfigError as exc:  # a node refused a parameter
         print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
         return 2
-    except GraphDataLoss as exc:  # the run ended, incomplete: show what there is, fail loudly
-        result = exc.result
-        summary = summarize(result, args.processes)
+    except GraphDataLoss as exc:  # the run ended, incomplete (or a node failed mid-run):
+        result = exc.result        # show what there is, fail loudly
+        info = None
+        if config.record and Path(config.record).exists():
+            from eha_ros.recording.reader import scan
+            info = scan(config.record)
+        summary = summarize(result, args.processes, info)
         print(json.dumps(summary, default=float)) if args.json else _print_text(summary)
         print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
         return 1
@@ -525,6 +536,10 @@ def main(argv=None) -> int:
         return 1
     if summary['diverged']:
         print(f'{PROG}: error: the plant diverged at t = {result.sim_s:.6f} s', file=sys.stderr)
+        return 1
+    if summary['safe_action_ticks']:
+        print(f'{PROG}: error: the plant ran {summary["safe_action_ticks"]} ticks on its '
+              'command watchdog\'s safe action (no current command)', file=sys.stderr)
         return 1
     return 0
 
