@@ -661,7 +661,10 @@ class GraphRun:
         self._start_deadline = self.t0 + _REPORT_DEADLINE_S
         self._coordinator_seen = False
         plant = self.params['servovalve_plant']
-        self._heartbeat_s = (HEARTBEAT_S if self.config.mode == 'realtime'
+        # one process: the plant shares this process's executor (and its GIL with the health
+        # monitor's estimates), so its silence is this process's, not a hung node's
+        self._heartbeat_s = (None if not self.processes else HEARTBEAT_S
+                             if self.config.mode == 'realtime'
                              else float(plant.get('command_wait_s', 10.0)) + HEARTBEAT_S)
 
     def _due(self, delay: float) -> bool:

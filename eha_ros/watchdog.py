@@ -10,12 +10,18 @@ the same, because the unit under test must not be driven by a dead controller.  
 * ``age`` is the number of ticks since the last fresh one (0: this tick's input is fresh; 1 or
   more: the tick ran on a stale input, which the node flags);
 * when ``age`` reaches ``timeout_ticks`` (``ceil(timeout_s / period)``) the watchdog trips and
-  its action is in force until a fresh input returns, when it resumes.
+  its action is in force until a fresh input returns, when it resumes;
+* it arms at the first fresh input: before it, the ticks count (the node has no input yet)
+  but do not trip.  In realtime the plant's first ticks come in catch-up bursts of tens of
+  ticks, run in one callback with no command between them; a controller that never commands
+  at all is a start-up failure, which the handshake and the harness report.
 
-Counting ticks rather than wall time keeps a lockstep run deterministic: its ticks are the
-simulation clock.  In realtime the ticks are locked to the wall clock, so the same count is a
-wall time; the ticks a late plant catches up at once count too (the simulated time they cover
-ran without commands).
+In lockstep the timeout counts ticks, which keeps the run deterministic: its ticks are the
+simulation clock.  In realtime the node passes ``overdue_s``, the wall time its oldest
+unanswered output has waited for an input (the plant: since the first state it published
+after the last command arrived), and the timeout counts that: the ticks a late plant catches up
+at once, in one callback with no command between them, run on a stale command (their age says
+so) but do not make a live controller look dead, and a plant stall does not either.
 
 The plant's actions (:data:`SAFE_ACTIONS`): ``hold`` (the last command stays, flagged),
 ``null_current`` (the coil current goes to zero, as an amplifier does: the default) and
@@ -89,6 +95,7 @@ class TickWatchdog:
         self.action = action
         self.age = 0
         self.tick = -1
+        self.armed = False       # a fresh input has arrived once
         self.tripped_at = None   # tick at which the action in force began
         self.stale_ticks = 0     # ticks run on a stale input, in all
         self.trips = 0
@@ -103,11 +110,13 @@ class TickWatchdog:
         """:data:`SAFE_CODES` of the action in force, :data:`SAFE_NONE` when none is."""
         return SAFE_CODES.get(self.in_force, SAFE_NONE)
 
-    def step(self, fresh: bool) -> Transition | None:
-        """One tick, ``fresh`` when its input arrived; returns the transition it made, if
-        any."""
+    def step(self, fresh: bool, overdue_s: float | None = None) -> Transition | None:
+        """One tick, ``fresh`` when its input arrived; ``overdue_s`` (realtime): how long the
+        oldest unanswered output has waited [s], which the timeout then counts instead of the
+        ticks.  Returns the transition it made, if any."""
         self.tick += 1
         if fresh:
+            self.armed = True
             age, self.age = self.age, 0
             if self.tripped_at is not None:
                 self.tripped_at = None
@@ -115,7 +124,9 @@ class TickWatchdog:
             return None
         self.age += 1
         self.stale_ticks += 1
-        if self.tripped_at is None and self.age >= self.timeout_ticks:
+        due = (self.age >= self.timeout_ticks if overdue_s is None
+               else overdue_s >= self.timeout_s)
+        if self.armed and self.tripped_at is None and due:
             self.tripped_at = self.tick
             self.trips += 1
             return Transition('tripped', self.tick, self.age)

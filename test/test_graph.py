@@ -236,7 +236,7 @@ def test_a_failing_node_gives_a_non_zero_exit(ros_env, tmp_path):
             proc.communicate()
     assert proc.returncode == 1
     line = _one_line_error(line + err)
-    assert 'controller' in line and 'exited' in line
+    assert 'controller' in line and 'killed by SIGKILL' in line
 
 
 @pytest.mark.parametrize('args, words', [

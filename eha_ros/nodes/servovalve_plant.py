@@ -34,7 +34,9 @@ Command watchdog (:class:`eha_ros.watchdog.TickWatchdog`): every operating tick 
 ticks since a current command last arrived for it (realtime: since the previous tick;
 lockstep: the answer stamped with the tick), and the state carries that count in
 ``command_age_ticks``: a tick that ran on a stale command says so.  After
-``command_timeout_s`` without one, the plant applies ``command_timeout_action``: ``hold``
+``command_timeout_s`` without one (lockstep: that many ticks; realtime: that long since the
+first state published after the last command, so that the plant's own catch-up bursts do not
+count), the plant applies ``command_timeout_action``: ``hold``
 (the last command stays), ``null_current`` (the default: zero coil current, what a servo
 amplifier does when it loses its command) or ``stop`` (that tick runs at null current, its
 state has status ``STATUS_STOPPED``, and the plant advances no further).  The action in force
@@ -176,6 +178,7 @@ class ServovalvePlant(Node):
         self.period_ns = period_ns
         self.command_watchdog = TickWatchdog(command_timeout_s, period_ns, timeout_action)
         self._fresh = False      # a current command arrived since the last tick
+        self._unanswered_since = None  # realtime: first state published since the last command
         self._missing = False    # lockstep: the last tick's command was missing
         self.stopped = False     # the watchdog's stop action ended the run
         self.schedule = EventSchedule([parse_event(e) for e in events if e.strip()],
@@ -262,7 +265,11 @@ class ServovalvePlant(Node):
     # command watchdog --------------------------------------------------------------------
     def _operating_current(self) -> float:
         """Step the command watchdog for an operating tick; the current it runs on."""
-        tr = self.command_watchdog.step(self._fresh)
+        overdue = None
+        if self.mode == 'realtime':
+            since = self._unanswered_since
+            overdue = 0.0 if since is None else (self._now_ns() - since) * 1e-9
+        tr = self.command_watchdog.step(self._fresh, overdue)
         self._fresh = False
         if tr is not None:
             self._report_watchdog(tr)
@@ -505,12 +512,14 @@ class ServovalvePlant(Node):
                 return
             self._rt_next += 1
             self.state_pub.publish(self._state_msg())
+            if self._unanswered_since is None:
+                self._unanswered_since = now
             self.timing.tick(now, now - (self._rt_anchor + k * self.period_ns))
 
     def _on_command(self, msg: ServovalveCommand):
         if self.mode == 'realtime':
             self.current_a = msg.current_command_a
-            self._fresh = True
+            self._fresh, self._unanswered_since = True, None
             return
         if stamp_to_ns(msg.header.stamp) != self.plant.time_ns:
             return  # an answer to a tick already advanced (a re-sent tick)
