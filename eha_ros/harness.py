@@ -896,7 +896,7 @@ def _exit_message(name: str, code: int, log_dir: Path) -> str:
     log = log_dir / f'{name}.log'
     lines = _log_lines(log)
     own = [line for line in lines if line.startswith(f'{name}: error:')]
-    return own[-1] if own else (f'node {name} exited with status {code} before the run '
+    return own[-1] if own else (f'node {name} {_how_it_ended(code)} before the run '
                                 f'completed (log: {log}): ' + ' | '.join(lines[-3:]))
 
 

@@ -34,7 +34,7 @@ def test_fields_in_file_order():
         'load_flow_m3_s', 'coil_current_a', 'torque_motor_force_n', 'sim_time_s', 'tick',
         'model', 'status', 'valve_test_point', 'valve_test_point_end', 'valve_test_procedure',
         'supply_pressure_measured_pa', 'return_pressure_measured_pa',
-        'fluid_temperature_measured_k', 'command_age_ticks', 'safe_action']
+        'fluid_temperature_measured_k', 'command_age_ticks', 'safe_action', 'final_state']
     assert ActuatorState.get_fields_and_field_types()['tick'] == 'uint64'
     assert ActuatorState.get_fields_and_field_types()['command_age_ticks'] == 'uint32'
     assert ActuatorState.get_fields_and_field_types()['status'] == 'uint8'

@@ -272,8 +272,8 @@ def test_realtime_controller_trigger(ros_env, trigger, per_state):
         if per_state:
             kp = node.params.kp_a_m
             assert sent[-1].current_command_a == pytest.approx(kp * (1e-4 - 2e-5))
-        assert len([t for t in node.timers if t not in (node.timing.timer,
-                                                        node.handshake._timer)]) == 1 - per_state
+        assert len([t for t in node.timers if t not in (node.timing.timer, node.handshake._timer,
+                                                        *node.watchdog_timers)]) == 1 - per_state
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)

@@ -35,7 +35,7 @@ def test_package_messages_are_valid():
         'ActuatorCommand', 'ActuatorState', 'GraphEvent', 'HealthStatus', 'ServovalveCommand']
     assert dependencies == ['builtin_interfaces', 'std_msgs']  # dependencies first
     state = {s.name: s for s in specs}['ActuatorState']
-    assert len(state.fields) == 24
+    assert len(state.fields) == 25
     assert {c.name: c.value for c in state.constants} == {
         'STATUS_OK': 0, 'STATUS_END_STOP': 1, 'STATUS_CAVITATION': 2, 'STATUS_DIVERGED': 3,
         'STATUS_VALVE_TEST': 4, 'STATUS_PREFLIGHT': 5, 'STATUS_STOPPED': 6,

@@ -20,7 +20,8 @@ a lockstep run with it is repeatable); ``'T:silent=0'`` resumes.  The plant's co
 takes over meanwhile.
 
 State watchdog: once the graph has started, when no plant state has arrived for
-``state_timeout_s`` of wall time (a dead or hung plant), the controller stops commanding: it
+``state_timeout_s`` of wall time (a dead or hung plant; not after the plant's last state,
+``final_state``), the controller stops commanding: it
 publishes one null current command flagged ``state_timeout``, logs the tick of the last
 state, and shows ``controller: state watchdog`` as ERROR on ``/diagnostics``; the next state
 resumes control, and it says so.
@@ -107,6 +108,8 @@ class Controller(Node):
         self.silent = False          # the silent switch is on: no current commands
         self._last_state_ns = None   # time.monotonic_ns of the last state
         self._state_timed_out = False
+        self._plant_done = False     # the plant's last state came: nothing more to wait for
+        self.watchdog_timers = ()
         self.timing = TickTiming(self, 1.0 / self.period_s, self.mode == 'realtime')
         self.handshake = Handshake(self, on_start=self._on_start)
         for entity, topic in ((self.pub, TOPIC_SERVOVALVE), (command_sub, TOPIC_COMMAND),
@@ -120,9 +123,10 @@ class Controller(Node):
         start_mono = self.handshake.start_monotonic_ns()
         self._last_state_ns = max(start_mono, time.monotonic_ns())
         steady = RosClock(clock_type=ClockType.STEADY_TIME)
-        self.create_timer(min(0.05, self.state_timeout_s / 4), self._on_state_watchdog,
-                          clock=steady)
-        self.create_timer(1.0, self._publish_state_watchdog, clock=steady)
+        self.watchdog_timers = (
+            self.create_timer(min(0.05, self.state_timeout_s / 4), self._on_state_watchdog,
+                              clock=steady),
+            self.create_timer(1.0, self._publish_state_watchdog, clock=steady))
         begin_timing(self, self.timing, start_mono, self._warm_up_s)
         if self.mode == 'realtime' and self.trigger == 'timer':
             at_start(self, start_mono,
@@ -171,7 +175,7 @@ class Controller(Node):
 
     # state watchdog -------------------------------------------------------------------------
     def _on_state_watchdog(self):
-        if self._last_state_ns is None or self._state_timed_out:
+        if self._last_state_ns is None or self._state_timed_out or self._plant_done:
             return
         quiet_s = (time.monotonic_ns() - self._last_state_ns) * 1e-9
         if quiet_s < self.state_timeout_s:
@@ -222,6 +226,7 @@ class Controller(Node):
 
     def _on_state(self, msg: ActuatorState):
         self._last_state_ns = time.monotonic_ns()
+        self._plant_done = msg.final_state
         if self._state_timed_out:
             self._state_timed_out = False
             self.get_logger().warning(f'plant states resumed at t = '

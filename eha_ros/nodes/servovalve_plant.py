@@ -385,6 +385,7 @@ class ServovalvePlant(Node):
         msg.valve_test_procedure = 0
         msg.command_age_ticks = 0
         msg.safe_action = 0
+        msg.final_state = self.done
         c = self.conditions
         msg.supply_pressure_measured_pa = float(c[0])
         msg.return_pressure_measured_pa = float(c[1])
