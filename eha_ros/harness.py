@@ -688,7 +688,8 @@ class GraphRun:
                 a for k, v in self.params[name].items() for a in ('-p', f'{k}:={_ros_arg(v)}')]
             out = open(self.log_dir / f'{name}.log', 'wb')
             self.procs[name] = (subprocess.Popen(cmd, env=self.env, stdout=out,
-                                                 stderr=subprocess.STDOUT, cwd=self.log_dir), out)
+                                                 stderr=subprocess.STDOUT, cwd=self.log_dir,
+                                                 preexec_fn=_stop_with_parent), out)
         else:
             node = _node_class(name)(context=self.context, parameter_overrides=[
                 Parameter(k, value=v) for k, v in self.params[name].items()])
@@ -898,6 +899,26 @@ def _exit_message(name: str, code: int, log_dir: Path) -> str:
     own = [line for line in lines if line.startswith(f'{name}: error:')]
     return own[-1] if own else (f'node {name} {_how_it_ended(code)} before the run '
                                 f'completed (log: {log}): ' + ' | '.join(lines[-3:]))
+
+
+def _libc_prctl():
+    try:
+        import ctypes
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+
+#: ``prctl`` (Linux), resolved here: the child between fork and exec must not load anything.
+_PRCTL = _libc_prctl()
+
+
+def _stop_with_parent() -> None:
+    """In a node process before it starts (Linux): SIGINT when the harness's thread that
+    started it dies, even by SIGKILL, so that no node outlives the run and the recorder
+    still closes its file.  Elsewhere: nothing."""
+    if _PRCTL is not None:
+        _PRCTL(1, 2)  # PR_SET_PDEATHSIG, SIGINT
 
 
 def describe_fault(fault: dict) -> str:

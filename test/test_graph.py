@@ -175,7 +175,7 @@ def test_ctrl_c_stops_every_node_and_keeps_the_recording(ros_env, tmp_path):
         pids = [int(p) for p in line.replace(')', ' ').split('pid ')[1:] for p in [p.split()[0]]]
         assert len(pids) == 4  # command generator, controller, plant, recorder
         deadline = time.monotonic() + TIMEOUT_S
-        while _timing_reports(record).keys() < {f'{n}: timing' for n in TICKING}:
+        while not {f'{n}: timing' for n in TICKING} <= _timing_reports(record).keys():
             assert time.monotonic() < deadline  # until every node's timing is recorded
             time.sleep(0.2)
         os.killpg(proc.pid, signal.SIGINT)

@@ -21,10 +21,10 @@ takes over meanwhile.
 
 State watchdog: once the graph has started, when no plant state has arrived for
 ``state_timeout_s`` of wall time (a dead or hung plant; not after the plant's last state,
-``final_state``), the controller stops commanding: it
-publishes one null current command flagged ``state_timeout``, logs the tick of the last
-state, and shows ``controller: state watchdog`` as ERROR on ``/diagnostics``; the next state
-resumes control, and it says so.
+``final_state``), the controller stops commanding: in realtime it publishes one null current
+command flagged ``state_timeout`` (in lockstep it answers states only, so it sends nothing),
+logs the tick of the last state and shows ``controller: state watchdog`` as ERROR on
+``/diagnostics``; the next state resumes control, and it says so.
 
 The arithmetic is :class:`eha_ros.physics.plant.PositionController`, the same as the
 physics-only closed loop.  Parameters: ``kp_a_m``, ``ki_a_m_s``, ``kd_a_s_m``,
@@ -183,7 +183,10 @@ class Controller(Node):
         self._state_timed_out = True
         self.get_logger().error(f'no plant state for {quiet_s:.3g} s (the last at t = '
                                 f'{self._stamp_ns * 1e-9:.6g} s): null current, control stopped')
-        self._send(self.get_clock().now().to_msg(), 0.0, state_timeout=True)
+        # lockstep answers states only: a command stamped now would be taken as the answer
+        # to the tick the plant waits on
+        if self.mode == 'realtime':
+            self._send(self.get_clock().now().to_msg(), 0.0, state_timeout=True)
         self._publish_state_watchdog()
 
     def _publish_state_watchdog(self):
