@@ -94,10 +94,12 @@ class GraphFault(GraphDataLoss):
 #: calls it hung (s): realtime; in lockstep the plant's own wait for a missing command
 #: (``command_wait_s``) comes first.
 HEARTBEAT_S = 1.0
-#: After a node other than the plant fails mid-run, how long the harness goes on collecting
-#: before it stops the rest (s): long enough for the plant's command watchdog (20 ms by
-#: default) to act, so that the result and the recording show the safe action.
+#: After a node other than the plant fails mid-run, how much simulated time the harness goes
+#: on collecting before it stops the rest (s): long enough for the plant's command watchdog
+#: (20 ms by default) to act, so that the result and the recording show the safe action; at
+#: most ``FAULT_GRACE_WALL_S`` of wall time (a lockstep plant waits ``command_wait_s``).
 FAULT_GRACE_S = 0.3
+FAULT_GRACE_WALL_S = 5.0
 
 
 @dataclasses.dataclass
@@ -704,9 +706,11 @@ class GraphRun:
             pass
         if self.fault is None:
             self._drain()
-        elif self.fault['node'] != 'servovalve_plant':
-            end = time.monotonic() + FAULT_GRACE_S
-            while time.monotonic() < end:
+        elif self.fault['node'] != 'servovalve_plant' and self.collector.n_states:
+            until_ns = min(self.duration_ns,
+                           self.collector.last_stamp_ns + round(FAULT_GRACE_S * 1e9))
+            end = time.monotonic() + FAULT_GRACE_WALL_S
+            while time.monotonic() < end and self.collector.last_stamp_ns < until_ns:
                 self.executor.spin_once(timeout_sec=_Collector.POLL_S)
                 self.collector.poll(force=True)
         result = self.collector.result(self.config, self.t0)

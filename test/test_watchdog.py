@@ -173,9 +173,10 @@ def test_a_dead_controller_trips_the_plants_command_watchdog(ros_env, tmp_path, 
     assert diag['level'] == 2
     assert f'{action} since tick {trips[-1]["tick_index"]}' in diag['message']
     assert safe[first + 10:].size >= 50
-    if action == 'null_current':  # the spool returns to null: the jack stops
+    if action == 'null_current':  # the spool returns to null (a few ms): the jack stops
         moving = np.mean(np.abs(st['jack_velocity_m_s'][first - 120:first - 20]))
-        assert np.mean(np.abs(st['jack_velocity_m_s'][first + 20:])) < 0.2 * moving
+        assert moving > 0
+        assert np.median(np.abs(st['jack_velocity_m_s'][first + 20:])) < 0.2 * moving
     else:  # the coil stays at the last command
         last = result.servovalve['current_command_a'][-1]
         held = np.mean(st['coil_current_a'][first + 10:])
