@@ -158,8 +158,8 @@ class ServovalvePlant(Node):
                                     'caught up at once; a longer stall slips', 1, 100000)
         command_timeout_s = declare(self, 'command_timeout_s', 0.02, 'command watchdog: the '
                                     'safe action follows this long without a current '
-                                    'command [s], counted in ticks (20 at 1 kHz: beyond the '
-                                    'late episodes of a loaded machine)', 1e-6, 60.0)
+                                    'command [s] (lockstep: in ticks; realtime: since the '
+                                    'first state left unanswered)', 1e-6, 60.0)
         timeout_action = declare(self, 'command_timeout_action', 'null_current', 'command '
                                  'watchdog: what follows the timeout', choices=SAFE_ACTIONS)
         self.command_wait_s = declare(self, 'command_wait_s', 10.0, 'lockstep: a tick whose '
@@ -297,7 +297,8 @@ class ServovalvePlant(Node):
 
     def _publish_watchdog(self) -> None:
         """``servovalve_plant: command watchdog`` on ``/diagnostics``: ERROR while an action is
-        in force (with the reason and the tick it began), WARN after stale ticks, else OK."""
+        in force (with the reason and the tick it began), WARN once it has tripped and
+        resumed, else OK (with the count of ticks that ran on a stale command)."""
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
         wd = self.command_watchdog
         began = getattr(self, '_watchdog_began', None)
@@ -305,11 +306,13 @@ class ServovalvePlant(Node):
             level = DiagnosticStatus.ERROR
             message = (f'no current command for {wd.timeout_ticks} ticks: {wd.action} since '
                        f'tick {began[0]} (t = {began[1] * 1e-9:.6g} s)')
-        elif wd.stale_ticks:
+        elif wd.trips:
             level = DiagnosticStatus.WARN
-            message = f'{wd.stale_ticks} ticks ran on a stale command since startup'
+            message = (f'tripped {wd.trips} times since startup, resumed; {wd.stale_ticks} '
+                       'ticks ran on a stale command')
         else:
-            level, message = DiagnosticStatus.OK, 'a current command for every tick'
+            level = DiagnosticStatus.OK
+            message = f'{wd.stale_ticks} ticks ran on a stale command since startup'
         values = {'Action': wd.action, 'Action in force': wd.in_force or 'none',
                   'Timeout (ticks)': wd.timeout_ticks, 'Command age (ticks)': wd.age,
                   'Stale ticks since startup': wd.stale_ticks,
