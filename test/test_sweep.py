@@ -198,9 +198,13 @@ def _scheduler(tmp_path):
                                str(sched_file)], env=env, stdout=subprocess.DEVNULL,
                               stderr=subprocess.DEVNULL)]
     deadline = time.monotonic() + 60
-    while not sched_file.is_file() and time.monotonic() < deadline:
-        time.sleep(0.1)
-    address = json.loads(sched_file.read_text())['address']
+    address = None
+    while address is None:   # the scheduler writes the file in place: wait until it is whole
+        assert time.monotonic() < deadline, 'the dask scheduler wrote no scheduler file'
+        try:
+            address = json.loads(sched_file.read_text())['address']
+        except (OSError, ValueError, KeyError):
+            time.sleep(0.1)
     for _ in range(2):
         procs.append(subprocess.Popen([str(BIN / 'dask'), 'worker', address, '--nthreads', '1',
                                        '--no-nanny', '--no-dashboard'], env=env,
