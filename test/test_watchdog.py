@@ -211,17 +211,18 @@ def test_a_plant_that_hangs_is_called_hung_within_a_second(ros_env):
 def test_a_plant_stopped_for_half_a_second_is_survived_and_said(ros_env):
     """SIGSTOP of the plant for 0.5 s, then SIGCONT: the controller's state watchdog (0.25 s)
     stops commanding with one flagged null current and resumes with the states; the plant
-    catches up (50 ticks at once, with no command between them: flagged stale) and its own
-    stall does not trip its command watchdog, or only trips it and resumes; the run ends
-    without a fault."""
+    catches up (50 ticks at once, with no command between them: flagged stale), its own stall
+    is not a controller's silence (a trip, where one comes, alternates with resumptions); the
+    run ends without a fault."""
     result, _, _ = _fault_run(ros_env, 'servovalve_plant', sig=signal.SIGSTOP,
                               cont_after_s=0.5, expect=None, duration_s=2.0)
     assert result.fault is None and result.sim_s >= 2.0 - 1e-9
     assert result.servovalve['state_timeout'].sum() == 1
     assert result.state['command_age_ticks'].max() >= 40   # the catch-up burst, flagged
     kinds = [e['changes']['safe_action'] for e in result.events if e['source'] == 'watchdog']
-    assert kinds == [float(NULL), 0.0] * (len(kinds) // 2)   # any trip resumed
-    assert result.state['safe_action'][-1] == 0
+    # trips and resumptions alternate (on a loaded machine a live controller can answer late
+    # by more than the timeout again, so the run may end tripped)
+    assert kinds == [float(NULL) if k % 2 == 0 else 0.0 for k in range(len(kinds))]
     log = Path(ros_env['ROS_LOG_DIR'], 'controller.log').read_text()
     assert 'no plant state for' in log and 'plant states resumed' in log
 
