@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -267,11 +268,17 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
         for r in rows:  # rows a worker never made (KilledWorker) lack the point's fields
             r.setdefault('procedure', spec.procedure)
             r.setdefault('noise', spec.noise)
-        write_batch(out, rows, sch, batch[0].index)
-        batches.record(rows)
-        for r in rows:
-            summary[r['status']] = summary.get(r['status'], 0) + 1
-        summary['ran'] += len(rows)
+        # a batch's file and its count go together: Ctrl-C waits until both are done (else
+        # the summary of an interrupted sweep could leave out a batch already on disk)
+        mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            write_batch(out, rows, sch, batch[0].index)
+            batches.record(rows)
+            for r in rows:
+                summary[r['status']] = summary.get(r['status'], 0) + 1
+            summary['ran'] += len(rows)
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         if bar is not None:
             bar.update(rows)
 
