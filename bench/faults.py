@@ -36,6 +36,7 @@ import numpy as np
 
 from eha_ros.harness import GraphConfig, GraphDataLoss, GraphRun
 from eha_ros.isolation import ros_environment
+from eha_ros.testing import SignalAfter
 
 DROPPED = dict(scenario='step_0p1', mode='lockstep', duration_s=0.4,
                events=[(0.2, 'controller', {'silent': 1.0})],
@@ -79,27 +80,16 @@ def dropped(runs: int) -> dict:
 def _signal_run(victim, sig, cont_after_s=None, **fields):
     """A realtime processes run; ``sig`` to ``victim`` once ``AFTER_STATES`` states are in."""
     fields = dict(dict(scenario='sine_0p1_5pi', mode='realtime', duration_s=3.0), **fields)
-    sent = {}
     with ros_environment() as env:
         with GraphRun(GraphConfig(**fields), env=env, log_dir=env['ROS_LOG_DIR']) as run:
-            def inject():
-                c = run.collector
-                if 'at' not in sent and c is not None and c.n_states >= AFTER_STATES:
-                    os.kill(run.pids[victim], sig)
-                    sent['at'] = time.monotonic()
-                if (cont_after_s is not None and 'at' in sent and 'cont' not in sent
-                        and time.monotonic() >= sent['at'] + cont_after_s):
-                    os.kill(run.pids[victim], signal.SIGCONT)
-                    sent['cont'] = True
-                return False
-            run.stop = inject
+            run.stop = inject = SignalAfter(run, victim, sig, AFTER_STATES, cont_after_s)
             try:
                 r = run.wait()
             except GraphDataLoss as exc:
                 r = exc.result
             reported = time.monotonic()
             start = run.collector.handshake.start_monotonic_ns() * 1e-9
-    return r, sent['at'], reported, start
+    return r, inject.sent_at, reported, start
 
 
 def killed(victims) -> dict:

@@ -15,6 +15,8 @@ directory first on ``sys.path``, and the source tree has no generated ``eha_ros.
 import argparse
 import json
 import math
+import os
+import signal
 import struct
 import sys
 import threading
@@ -24,6 +26,32 @@ from typing import Dict
 from eha_ros import graph
 from eha_ros.isolation import (allocate_domain_id, DOMAIN_IDS, DomainIdLease,  # noqa: F401
                                RMW_IMPLEMENTATION, ros_environment)
+
+
+class SignalAfter:
+    """Fault injection for a :class:`eha_ros.harness.GraphRun`, as its ``stop`` callable
+    (which never stops the run): ``sig`` to node process ``victim`` once the harness has
+    received ``after`` states, and SIGCONT ``cont_after_s`` later if given; ``sent_at``: the
+    ``time.monotonic`` of the signal (None before it)."""
+
+    def __init__(self, run, victim: str, sig: int, after: int,
+                 cont_after_s: float | None = None):
+        self.run, self.victim, self.sig, self.after = run, victim, sig, after
+        self.cont_after_s = cont_after_s
+        self.sent_at = None
+        self._continued = False
+
+    def __call__(self) -> bool:
+        c = self.run.collector
+        if self.sent_at is None and c is not None and c.n_states >= self.after:
+            os.kill(self.run.pids[self.victim], self.sig)
+            self.sent_at = time.monotonic()
+        if (self.cont_after_s is not None and self.sent_at is not None and not self._continued
+                and time.monotonic() >= self.sent_at + self.cont_after_s):
+            os.kill(self.run.pids[self.victim], signal.SIGCONT)
+            self._continued = True
+        return False
+
 
 #: The package's message types, in ``eha_ros.msg``.
 MESSAGE_TYPES = ('ActuatorCommand', 'ServovalveCommand', 'ActuatorState', 'HealthStatus',

@@ -21,6 +21,7 @@ import pytest
 from eha_ros import graph
 from eha_ros.harness import GraphConfig, GraphDataLoss, GraphFault, GraphRun
 from eha_ros.physics import ParameterError
+from eha_ros.testing import SignalAfter
 from eha_ros.watchdog import SAFE_ACTIONS, SAFE_CODES, TickWatchdog, timeout_ticks, Transition
 
 BIN = Path(sys.executable).parent
@@ -106,21 +107,9 @@ def _fault_run(ros_env, victim, *, after=300, sig=signal.SIGKILL, cont_after_s=N
     ``after`` states (SIGCONT ``cont_after_s`` later); returns (result, exception, pids)."""
     fields.setdefault('duration_s', 3.0)
     fields.setdefault('mode', 'realtime')
-    sent = {}
-
     with GraphRun(GraphConfig(**fields), env=ros_env, log_dir=ros_env['ROS_LOG_DIR'],
                   timeout_s=TIMEOUT_S) as run:
-        def inject():
-            c = run.collector
-            if 'at' not in sent and c is not None and c.n_states >= after:
-                os.kill(run.pids[victim], sig)
-                sent['at'] = time.monotonic()
-            if (cont_after_s is not None and 'at' in sent and 'cont' not in sent
-                    and time.monotonic() >= sent['at'] + cont_after_s):
-                os.kill(run.pids[victim], signal.SIGCONT)
-                sent['cont'] = True
-            return False
-        run.stop = inject
+        run.stop = SignalAfter(run, victim, sig, after, cont_after_s)
         pids = dict(run.pids)
         if expect is None:
             return run.wait(), None, pids
