@@ -91,14 +91,17 @@ class _CpuSampler:
         return {n: round((self.last[n] - self.first[n]) / dt, 3) for n in self.pids}
 
 
-def realtime(seconds, processes, health=False, record=False, rt=False):
+def realtime(seconds, processes, health=False, record=False, rt=False, trace=True,
+             node_params=None):
     cfg = GraphConfig(scenario='sine_0p1_5pi', mode='realtime', duration_s=seconds,
-                      health=health, rt=rt)
+                      health=health, rt=rt, node_params=dict(node_params or {}))
     load_before = os.getloadavg()
     sampler = _CpuSampler(skip_s=0.0)
     with tempfile.TemporaryDirectory() as tmp, ros_environment() as env:
         if record:
             cfg.record = str(Path(tmp) / 'run.mcap')
+        if trace:
+            cfg.trace = str(Path(tmp) / 'trace.mcap')
         cpu0, t0 = time.process_time(), time.monotonic()
         r = run_graph(cfg, processes=processes, env=env, timeout_s=60, on_start=sampler.start)
         own_cpu = (time.process_time() - cpu0) / (time.monotonic() - t0)
@@ -158,6 +161,8 @@ def realtime(seconds, processes, health=False, record=False, rt=False):
            'cores': os.cpu_count()}
     if recording is not None:
         out['recording'] = recording
+    if r.trace is not None:
+        out['late_causes'] = {n: t.get('shares', t) for n, t in r.trace.items()}
     return out
 
 
@@ -201,12 +206,26 @@ class _Load:
             p.wait()
 
 
+def _node_params(items) -> dict:
+    """``['node.name=value', ...]`` -> ``{node: {name: value}}`` (values as YAML scalars)."""
+    import yaml
+    out = {}
+    for item in items or ():
+        target, eq, value = item.partition('=')
+        node, dot, name = target.partition('.')
+        if not eq or not dot:
+            sys.exit(f'graph: --set {item!r}: expected node.name=value')
+        out.setdefault(node, {})[name] = yaml.safe_load(value)
+    return out
+
+
 def _one_case(layout, rt, args) -> dict:
     """One realtime measurement in a fresh process (real-time settings in one process apply to
     the whole process: they must not leak into the next case)."""
     cmd = [sys.executable, __file__, '--case', f'{layout}:{int(rt)}', '--realtime-s',
            str(args.realtime_s)] + (['--health'] if args.health else []) + (
-        ['--record'] if args.record else [])
+        ['--record'] if args.record else []) + (['--no-trace'] if args.no_trace else []) + [
+        a for s in args.set or () for a in ('--set', s)]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     if out.returncode != 0:
         return {'error': out.stderr.strip().splitlines()[-1] if out.stderr.strip() else
@@ -226,6 +245,11 @@ def main():
                     help='N CPU-bound processes at normal priority beside the realtime runs')
     ap.add_argument('--rt', choices=('off', 'on', 'both'), default='both',
                     help='realtime runs without and/or with the real-time settings (--rt)')
+    ap.add_argument('--no-trace', action='store_true',
+                    help='realtime without the timing trace (no late-tick causes)')
+    ap.add_argument('--set', action='append', metavar='NODE.NAME=VALUE',
+                    help='a node parameter for the realtime runs (repeatable), e.g. '
+                         'servovalve_plant.switch_interval_s=0.0005')
     ap.add_argument('--case', help=argparse.SUPPRESS)
     ap.add_argument('--smoke', action='store_true', help='tiny cases: a check, no figure')
     args = ap.parse_args()
@@ -236,11 +260,13 @@ def main():
     if args.case:  # one realtime measurement (a child of the run below)
         layout, rt = args.case.split(':')
         print(json.dumps(realtime(args.realtime_s, layout == 'processes', args.health,
-                                  args.record, rt == '1')))
+                                  args.record, rt == '1', not args.no_trace,
+                                  _node_params(args.set))))
         return
     models = args.models.split(',')
     out = {'benchmark': 'graph', 'smoke': args.smoke,
-           'load_processes': args.load, 'realtime_s': args.realtime_s}
+           'load_processes': args.load, 'realtime_s': args.realtime_s,
+           'node_params': _node_params(args.set)}
     rts = {'off': [False], 'on': [True], 'both': [False, True]}[args.rt]
     layouts = args.layouts.split(',')
     if args.realtime_s > 0:

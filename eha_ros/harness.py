@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from array import array
 import dataclasses
+import math
 import os
 import signal
 import subprocess
@@ -116,7 +117,11 @@ class GraphConfig:
     health monitor, and the harness's own process for the run)
     :data:`eha_ros.realtime.RT_LISTENER_DEFAULTS`.  The graph starts when
     every node's endpoints have matched (:mod:`eha_ros.nodes.handshake`), at most
-    ``handshake_timeout_s`` after the nodes were started.
+    ``handshake_timeout_s`` after the nodes were started.  ``trace`` (realtime): an MCAP file
+    (it must not exist) for the timing trace of every tick of every node with a tick loop (the
+    plant, the command generator, a ``trigger: timer`` controller), each late episode with its
+    evidence and cause (:mod:`eha_ros.recording.trace`); :attr:`GraphResult.trace` has the
+    late ticks by cause.
 
     A parameter no node declares, an unknown node or an event parameter the node cannot change
     while running is refused (:class:`GraphConfigError`) before anything starts."""
@@ -137,6 +142,7 @@ class GraphConfig:
     node_params: dict = dataclasses.field(default_factory=dict)
     rt: bool = False
     handshake_timeout_s: float = 60.0
+    trace: str = ''
 
     def resolved_duration(self) -> float:
         if self.duration_s is not None:
@@ -214,6 +220,13 @@ class GraphConfig:
                 out[node].update(thread_priority=int(rt.thread_priority),
                                  cpu_affinity=list(cpus) or [-1],
                                  lock_memory=bool(rt.lock_memory))
+            # the threads beside a tick loop (executor, middleware) at the listeners'
+            # priority: one at normal priority that holds the GIL can be preempted by any
+            # busy process while the loop waits for the GIL (the trace showed 24 ms waits
+            # with no CPU time in the process's other threads)
+            for node in self.traced_nodes(out):
+                if self.mode == 'realtime':
+                    out[node]['executor_priority'] = int(RT_LISTENER_DEFAULTS.thread_priority)
         for node, values in self.node_params.items():
             if node not in out:
                 known = ', '.join(out)
@@ -222,6 +235,25 @@ class GraphConfig:
             out[node].update(values)
         _check_declared(out)
         return out
+
+    def traced_nodes(self, params: dict) -> list:
+        """The nodes of ``params`` (:meth:`node_parameters`) that run a tick loop."""
+        return [n for n in ('command_generator', 'servovalve_plant') if n in params] + (
+            ['controller'] if params.get('controller', {}).get('trigger') == 'timer' else [])
+
+    def with_trace_files(self, params: dict, directory: Path) -> dict:
+        """``params`` with each traced node's ``trace_file`` in ``directory`` and room for
+        the run (its duration and 5 s more)."""
+        if not self.trace:
+            return params
+        if self.mode != 'realtime':
+            raise GraphConfigError('trace: a lockstep run has no wall-clock schedule to be '
+                                   'late on; trace a realtime run')
+        ticks = int(math.ceil(self.resolved_duration() * self.rate_hz)) + int(5 * self.rate_hz)
+        for node in self.traced_nodes(params):
+            params[node].setdefault('trace_file', str(directory / f'trace_{node}.npz'))
+            params[node].setdefault('trace_ticks', ticks)
+        return params
 
 
 def rt_cpus() -> tuple:
@@ -297,6 +329,7 @@ class GraphResult:
     missed_at_start: dict = dataclasses.field(default_factory=dict)
     missing: dict = dataclasses.field(default_factory=dict)
     fault: dict | None = None
+    trace: dict | None = None
 
     @property
     def sim_s(self) -> float:
@@ -597,6 +630,8 @@ class GraphRun:
         self.params = config.node_parameters()
         if config.record and Path(config.record).exists():
             raise GraphError(f'{config.record} exists: refusing to overwrite it')
+        if config.trace and Path(config.trace).exists():
+            raise GraphError(f'{config.trace} exists: refusing to overwrite it')
         self.delays = dict(delays or {})
         unknown = set(self.delays) - set(self.params) - {COLLECTOR}
         if unknown:
@@ -604,6 +639,7 @@ class GraphRun:
         self.processes, self.timeout_s, self.stop = processes, timeout_s, stop
         self.on_start, self.delay_after_start = on_start, delay_after_start
         self.log_dir = Path(log_dir or tempfile.mkdtemp(prefix='eha_graph_'))
+        self.params = config.with_trace_files(self.params, self.log_dir)
         self.procs, self.nodes = {}, []  # node processes: name -> (Popen, log); nodes here
         self.context = rclpy.Context()
         self.executor = self.collector = self.observer = None
@@ -719,6 +755,8 @@ class GraphRun:
         failure = self._stop_processes()
         if failure is not None:
             raise GraphError(failure)
+        if self.config.trace:
+            result.trace = self._write_trace()
         if self.fault is not None:
             raise GraphFault(f'{describe_fault(self.fault)} (logs in {self.log_dir})', result)
         if self.config.mode == 'lockstep' and not self.interrupted and not result.complete:
@@ -845,6 +883,26 @@ class GraphRun:
         if rec is not None and rec[0].returncode != 0:
             return (f'recorder exited with status {rec[0].returncode}: '
                     + ' | '.join(_log_lines(self.log_dir / 'recorder.log')[-3:]))
+
+    def _write_trace(self) -> dict:
+        """Gather the nodes' timing traces (in this process: stop their loops first) into
+        ``config.trace``; returns ``{node: {'ticks', 'dropped', 'complete', 'shares'}}``, or
+        ``{node: {'missing': why}}`` for a node that left none (one killed mid-run)."""
+        from eha_ros.recording.trace import load_node_trace, summarise, write_trace
+        for node in self.nodes:
+            getattr(node, 'close', lambda: None)()
+        traces, out = {}, {}
+        for node in self.config.traced_nodes(self.params):
+            path = Path(self.params[node]['trace_file'])
+            if not path.is_file():
+                out[node] = {'missing': f'no trace: {node} did not shut down cleanly'}
+                continue
+            traces[node] = summarise(load_node_trace(path))
+            t = traces[node]
+            out[node] = {'ticks': len(t['ticks']['tick']), 'dropped': t['dropped'],
+                         'complete': t['complete'], 'shares': t['shares']}
+        write_trace(self.config.trace, traces, time.time_ns() - time.monotonic_ns())
+        return out
 
     def _close(self) -> None:
         """Stop every node, end the ROS context, restore the environment and scheduling."""

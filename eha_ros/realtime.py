@@ -20,12 +20,15 @@ Settings (:class:`RealtimeSettings`, applied by :func:`apply_realtime`)
     finite ``RLIMIT_MEMLOCK`` and no ``CAP_IPC_LOCK`` an allocation that would exceed the limit
     fails.
 
-Unlike ``ros2_control_node``, which gives ``SCHED_FIFO`` to its control thread only,
-:func:`apply_realtime` sets every thread of the process (``/proc/self/task``): an rclpy node's
-tick runs in the executor thread but under the GIL, and in lockstep it waits for messages that
-the middleware's receive threads deliver, so a tick is only as timely as the slowest link of
-that chain.  Threads started later inherit the scheduling, affinity and (process-wide) memory
-lock of the thread that creates them.
+:func:`apply_realtime` sets every thread of the process (``/proc/self/task``): in lockstep a
+tick waits for messages that the middleware's receive threads deliver, so it is only as timely
+as the slowest link of that chain.  In realtime the ticking nodes run their tick in a thread
+of their own (:mod:`eha_ros.tickloop`), as ``ros2_control_node`` runs its control loop, and
+only that thread gets ``thread_priority`` and ``cpu_affinity``; the process's other threads
+get ``executor_priority`` (``--rt``: the listeners' 30, because a normal-priority thread that
+holds the GIL can be preempted by any busy process while the loop waits for it).  Threads
+started later inherit the scheduling, affinity and (process-wide) memory lock of the thread
+that creates them.
 
 What the OS may refuse, and what to change (each refusal is one warning line, never an error):
 
@@ -308,14 +311,9 @@ def _set_affinity(cpus: tuple[int, ...], threads: str) -> str | None:
     return None
 
 
-def _set_priority(priority: int, threads: str) -> str | None:
-    param = os.sched_param(priority)
-    ok, refused, e = _for_threads(
-        lambda tid: os.sched_setscheduler(tid, os.SCHED_FIFO, param), threads)
-    if e is None:
-        return None
-    where = 'running at normal priority' if not ok else \
-        f'set on {ok} of {ok + refused} threads, the others at normal priority'
+def priority_refusal(priority: int, e: OSError, where: str) -> str:
+    """One warning line: ``SCHED_FIFO`` ``priority`` refused with ``e``, what to change, and
+    ``where`` (what runs at normal priority instead)."""
     soft = resource.getrlimit(resource.RLIMIT_RTPRIO)[0]
     if e.errno == errno.EPERM and (soft == resource.RLIM_INFINITY or soft >= priority):
         # The limit allows it: RT group scheduling without RT time for this cgroup.
@@ -326,6 +324,17 @@ def _set_priority(priority: int, threads: str) -> str | None:
             f'{_limit_text(soft)}): allow SCHED_FIFO with `ulimit -r 99` or an `rtprio 99` line '
             f'in /etc/security/limits.conf, or in docker --cap-add=sys_nice --ulimit rtprio=99; '
             f'{where}')
+
+
+def _set_priority(priority: int, threads: str) -> str | None:
+    param = os.sched_param(priority)
+    ok, refused, e = _for_threads(
+        lambda tid: os.sched_setscheduler(tid, os.SCHED_FIFO, param), threads)
+    if e is None:
+        return None
+    where = 'running at normal priority' if not ok else \
+        f'set on {ok} of {ok + refused} threads, the others at normal priority'
+    return priority_refusal(priority, e, where)
 
 
 def apply_realtime(settings: RealtimeSettings, threads: str = 'all') -> list[str]:
@@ -454,6 +463,10 @@ class GcPauses:
         if d > self._max_ns[g]:
             self._max_ns[g] = d
         self._collected += info['collected']
+
+    def total_ns(self) -> int:
+        """Every pause so far, summed [ns]."""
+        return sum(self._total_ns)
 
     def close(self) -> None:
         """Remove the hook (idempotent)."""

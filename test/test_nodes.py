@@ -162,7 +162,8 @@ def test_realtime_mode_ticks_at_its_rate(eha_graph):
 
 def test_realtime_plant_locks_simulated_time_to_the_wall_clock(ros_env):
     """The realtime plant's catch-up and slip, driven by a wall clock the test sets: a late
-    timer call publishes every tick that fell due, a stall beyond ``max_catch_up`` ticks slips
+    wake of its loop publishes every tick that fell due, a stall beyond ``max_catch_up`` ticks
+    slips
     (the backlog dropped and counted), and simulated time then follows the wall clock again."""
     import rclpy
     from rclpy.parameter import Parameter
@@ -186,7 +187,7 @@ def test_realtime_plant_locks_simulated_time_to_the_wall_clock(ros_env):
         def call(dt_ns):
             wall[0] += dt_ns
             n = len(published)
-            node._on_timer()
+            node._on_loop_wake(wall[0])
             return published[n:]
 
         assert [m[1] for m in call(0)] == [0]       # tick 0 falls due at the start
@@ -206,8 +207,9 @@ def test_realtime_plant_locks_simulated_time_to_the_wall_clock(ros_env):
 
 def test_realtime_command_generator_publishes_every_sample_on_the_tick_grid(ros_env):
     """Realtime command generator, driven by a wall clock the test sets: sample k is the
-    scenario's value at k periods, stamped with the start plus k periods; a late timer call
-    publishes every sample that fell due, a stall beyond ``max_catch_up`` slips (counted)."""
+    scenario's value at k periods, stamped with the start plus k periods;
+    a late wake of its loop publishes every sample that fell due, a stall beyond
+    ``max_catch_up`` slips (counted)."""
     import rclpy
     from rclpy.parameter import Parameter
 
@@ -224,14 +226,13 @@ def test_realtime_command_generator_publishes_every_sample_on_the_tick_grid(ros_
             (m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec,
              m.position_setpoint_m))
         wall, ms, start_ns = [5_000_000_000], 1_000_000, 1_700_000_000_000_000_000
-        node._now_ns = lambda: wall[0]
         node._t0_ns = start_ns
         node._anchor(wall[0])
 
         def call(dt_ns):
             wall[0] += dt_ns
             n = len(sent)
-            node._on_timer()
+            node._on_loop_wake(wall[0])
             return sent[n:]
         assert len(call(0)) == 1 and len(call(ms // 2)) == 0
         assert len(call(7 * ms + ms // 2)) == 8             # 8 ms late: every sample sent
@@ -249,7 +250,7 @@ def test_realtime_command_generator_publishes_every_sample_on_the_tick_grid(ros_
 def test_realtime_controller_trigger(ros_env, trigger, per_state):
     """Realtime controller: by default every plant state clocks one control step (current from
     the latest setpoint and this state's sensor reading); with ``trigger:=timer`` states only
-    update the reading and its own timer publishes."""
+    update the reading and its own loop (a thread of its own, from the start) publishes."""
     import rclpy
     from rclpy.parameter import Parameter
 
@@ -262,18 +263,32 @@ def test_realtime_controller_trigger(ros_env, trigger, per_state):
             Parameter('mode', value='realtime'), Parameter('trigger', value=trigger)])
         own = [t for t in node.timers if t is not node.handshake._timer]
         assert own == []  # no clock of its own before the graph's start
-        node.handshake._begin(time.time_ns(), 'realtime')  # the start (already passed)
         sent = []
         node.pub.publish = sent.append
         node._on_command(ActuatorCommand(position_setpoint_m=1e-4))
         for k in range(3):
             node._on_state(ActuatorState(jack_position_measured_m=k * 1e-5))
-        assert len(sent) == 3 * per_state
-        if per_state:
-            kp = node.params.kp_a_m
-            assert sent[-1].current_command_a == pytest.approx(kp * (1e-4 - 2e-5))
-        assert len([t for t in node.timers if t not in (node.timing.timer, node.handshake._timer,
-                                                        *node.watchdog_timers)]) == 1 - per_state
+        assert len(sent) == 3 * per_state  # before the start only states clock it
+        node.handshake._begin(time.time_ns(), 'realtime')  # the start (already passed)
+        kp = node.params.kp_a_m
+        if not per_state:
+            assert node.rt_loop is not None and node.rt_loop.loop.running
+            for _ in range(500):  # the loop's thread publishes on its own
+                if len(sent) >= 5:
+                    break
+                time.sleep(0.01)
+            assert len(sent) >= 5
+            from eha_ros.physics.plant import PositionController
+            first = PositionController(node.params, node.period_s).update(1e-4, 2e-5)
+            assert sent[0].current_command_a == pytest.approx(first)  # its first step
+        else:
+            assert node.rt_loop is None
+            node._on_state(ActuatorState(jack_position_measured_m=2e-5))
+            assert len(sent) == 4
+            assert sent[-1].current_command_a == pytest.approx(kp * (1e-4 - 2e-5), rel=1e-6)
+        assert [t for t in node.timers if t not in (node.timing.timer, node.handshake._timer,
+                                                    *node.watchdog_timers)] == []
+        node.close()
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)

@@ -405,13 +405,16 @@ def _stop(proc):
 
 
 def test_thread_priority_and_locked_memory_read_back_from_the_node_process(ros_env, tmp_path):
-    """Where this process may use SCHED_FIFO (root here): a plant with thread_priority 10 and
-    lock_memory runs every thread of its process under SCHED_FIFO 10 with its memory locked,
-    and says nothing against it."""
+    """Where this process may use SCHED_FIFO (root here): a lockstep plant (its ticks run in
+    the executor, on the middleware's messages) with thread_priority 10 and lock_memory runs
+    every thread of its process under SCHED_FIFO 10 with its memory locked, and says nothing
+    against it.  (In realtime only its tick loop's thread gets the priority:
+    ``test_tickloop.py``.)"""
     if not _may_use_fifo():
         pytest.skip('SCHED_FIFO refused here: the refusal test covers this machine')
     proc, lines = _start_until([str(BIN / 'servovalve_plant'), '--ros-args', '-p',
-                                'thread_priority:=10', '-p', 'lock_memory:=true'],
+                                'thread_priority:=10', '-p', 'lock_memory:=true', '-p',
+                                'mode:=lockstep'],
                                ros_env, tmp_path, 'waiting for')
     try:
         tids = [int(t) for t in os.listdir(f'/proc/{proc.pid}/task')]
@@ -444,7 +447,8 @@ def test_refused_real_time_settings_give_one_warning_and_the_node_runs_on(ros_en
                 if libc.prctl(24, cap, 0, 0, 0) != 0:  # PR_CAPBSET_DROP
                     raise OSError(ctypes.get_errno(), 'PR_CAPBSET_DROP')
     proc, lines = _start_until([str(BIN / 'servovalve_plant'), '--ros-args', '-p',
-                                'thread_priority:=40', '-p', 'lock_memory:=true'],
+                                'thread_priority:=40', '-p', 'lock_memory:=true', '-p',
+                                'mode:=lockstep'],
                                ros_env, tmp_path, 'waiting for', preexec_fn=drop)
     try:
         assert proc.poll() is None

@@ -1,11 +1,12 @@
 """``command_generator``: publishes the jack position command (``ActuatorCommand``).
 
-Realtime mode: a wall-clock timer at ``rate_hz``, time counted from the graph's common start
-(the start-up handshake, :mod:`eha_ros.nodes.handshake`): sample k, the command of time
-k/rate_hz, falls due at the start plus k periods, as the plant's state of that time, and is
-stamped with that wall-clock time. A late timer call publishes every sample that fell due (at
-most ``max_catch_up``; a longer stall slips, counted and logged), so the command sequence does
-not depend on the machine's load.
+Realtime mode: a loop in a thread of its own (:class:`eha_ros.nodes.common.NodeLoop`) wakes
+at absolute deadlines from the graph's common start (the start-up handshake,
+:mod:`eha_ros.nodes.handshake`): sample k, the command of time k/rate_hz, falls due at the
+start plus k periods, as the plant's state of that time, and is stamped with that wall-clock
+time; sample 0 is due at the start itself.  A late wake publishes every sample that fell due
+(at most ``max_catch_up``; a longer stall slips, counted and logged), so the command sequence
+does not depend on the machine's load.
 Lockstep mode: one command per ``/clock`` tick published by the plant, stamped with that tick
 and evaluated at exactly its time.
 
@@ -27,9 +28,10 @@ from eha_ros.physics.commands import WAVEFORMS
 
 from eha_ros.graph import TOPIC_DIAGNOSTICS
 
-from .common import (advertise, apply_realtime_settings, at_start, begin_timing, declare,
-                     declare_realtime, MODES, ns_to_stamp, run_node, stamp_to_ns, subscribe,
-                     TickTiming, TOPIC_CLOCK, TOPIC_COMMAND, validator)
+from .common import (advertise, apply_realtime_settings, begin_timing, declare, declare_loop,
+                     declare_realtime, MODES, NodeLoop, ns_to_stamp, refuse_loop_options,
+                     run_node, stamp_to_ns, subscribe, TickTiming, TOPIC_CLOCK, TOPIC_COMMAND,
+                     validator)
 from .handshake import Handshake
 
 _WAVE_PARAMS = ('amplitude_m', 'frequency_rad_s', 'start_s', 'ramp_time_s', 'f0_hz', 'f1_hz',
@@ -58,6 +60,7 @@ class CommandGenerator(Node):
         self.max_catch_up = declare(self, 'max_catch_up', 50, 'realtime: most late samples '
                                     'published at once; a longer stall slips', 1, 100000)
         realtime = declare_realtime(self)
+        loop_options = declare_loop(self)
         self.scenario = self._build(self._values())
         self.scenario.value(0.0)  # compile the command kernel now, not in the first tick
         self._check_mode(self.get_parameter('mode').value)
@@ -75,8 +78,19 @@ class CommandGenerator(Node):
             clock_sub = subscribe(self, Clock, TOPIC_CLOCK, self._on_clock)
             self.handshake.watch(clock_sub, TOPIC_CLOCK)
         self._t0_ns = None
+        self.fatal = None
+        self.rt_loop = None
+        if self.mode == 'realtime':  # the samples in a thread of their own
+            self.rt_loop = NodeLoop(self, self.period_ns, self._on_loop_wake, realtime,
+                                    loop_options)
+            self.timing.lock = self.rt_loop.lock
+        else:
+            refuse_loop_options(loop_options, 'a lockstep command generator')
         self._warm_up_s = (time.monotonic_ns() - init_ns) * 1e-9
-        apply_realtime_settings(self, realtime)
+        if self.rt_loop is not None:
+            self.rt_loop.apply_process_settings()
+        else:
+            apply_realtime_settings(self, realtime)
 
     def _on_start(self, start_ns: int, mode: str) -> None:
         """The graph starts: realtime commands are timed from the common start."""
@@ -85,17 +99,13 @@ class CommandGenerator(Node):
         if self.mode == 'realtime':
             self._t0_ns = start_ns
             self._anchor(start_mono)
-            at_start(self, start_mono, self._begin_realtime)
+            self.rt_loop.start(start_mono, self.timing.gc)  # sample 0 at the start itself
 
     def _anchor(self, start_mono_ns: int) -> None:
         """Realtime: sample k falls due at ``start_mono_ns`` plus k periods."""
         self._rt_anchor = start_mono_ns
         self._rt_next = 0
         self.slipped_ticks = 0
-
-    def _begin_realtime(self) -> None:
-        self.create_timer(self.period_ns * 1e-9, self._on_timer)
-        self._on_timer()
 
     def _values(self, changes=None) -> dict:
         names = ('scenario', 'waveform') + _WAVE_PARAMS
@@ -118,6 +128,12 @@ class CommandGenerator(Node):
             raise ParameterError(f'mode {mode!r} must be one of {", ".join(MODES)}')
 
     def _on_set(self, changes):
+        if self.rt_loop is None:
+            return self._on_set_locked(changes)
+        with self.rt_loop.lock:
+            return self._on_set_locked(changes)
+
+    def _on_set_locked(self, changes):
         if 'mode' in changes:
             self._check_mode(changes['mode'])
             raise ParameterError('mode cannot change while running')
@@ -128,9 +144,10 @@ class CommandGenerator(Node):
         if set(changes) & (set(_WAVE_PARAMS) | {'scenario', 'waveform'}):
             self.scenario = self._build(self._values(changes))
 
-    def _publish(self, t_ns: int, stamp=None, stamp_ns=None):
+    def _publish(self, t_ns: int, stamp=None, stamp_ns=None) -> int:
         """The command of scenario time ``t_ns``, stamped ``stamp`` (a message) or
-        ``stamp_ns`` (default: ``t_ns``)."""
+        ``stamp_ns`` (default: ``t_ns``); returns when its value was computed
+        (``time.monotonic_ns``)."""
         msg = ActuatorCommand()
         if stamp is not None:
             msg.header.stamp = stamp
@@ -138,8 +155,10 @@ class CommandGenerator(Node):
             ns_to_stamp(msg.header.stamp, t_ns if stamp_ns is None else stamp_ns)
         msg.header.frame_id = 'jack'
         msg.position_setpoint_m = float(self.scenario.value(t_ns * 1e-9))
+        computed = time.monotonic_ns()
         self.pub.publish(msg)
         self.published += 1
+        return computed
 
     def _on_clock(self, msg: Clock):
         began = time.monotonic_ns()
@@ -147,12 +166,9 @@ class CommandGenerator(Node):
         self.timing.tick(began)
         self.timing.busy(began)
 
-    def _now_ns(self) -> int:
-        """Wall-clock time [ns] that samples fall due on (``time.monotonic_ns``)."""
-        return time.monotonic_ns()
-
-    def _on_timer(self):
-        now = self._now_ns()
+    def _on_loop_wake(self, now: int):
+        """The sample loop woke (its thread, the lock held): publish every sample due by
+        ``now``."""
         began = time.monotonic_ns()
         due = (now - self._rt_anchor) // self.period_ns
         behind = due - self._rt_next + 1
@@ -168,9 +184,17 @@ class CommandGenerator(Node):
         for _ in range(max(0, behind)):
             k = self._rt_next
             self._rt_next += 1
-            self._publish(k * self.period_ns, stamp_ns=self._t0_ns + k * self.period_ns)
-            self.timing.tick(now, now - (self._rt_anchor + k * self.period_ns))
+            computed = self._publish(k * self.period_ns,
+                                     stamp_ns=self._t0_ns + k * self.period_ns)
+            due = self._rt_anchor + k * self.period_ns
+            self.rt_loop.record(k, due, computed, time.monotonic_ns())
+            self.timing.tick(now, now - due)
         self.timing.busy(began)
+
+    def close(self) -> None:
+        """Stop the sample loop (and write its timing trace)."""
+        if self.rt_loop is not None:
+            self.rt_loop.close()
 
 
 def main(args=None) -> int:

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import math
 import sys
+import threading
 import time
 from typing import Callable, Iterable
 
+import numpy as np
 import rclpy
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType, SetParametersResult)
@@ -24,8 +26,9 @@ from eha_ros.graph import (MODES, TIMING_SUFFIX, TOPIC_CLOCK, TOPIC_COMMAND, TOP
 __all__ = ['TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOPIC_HEALTH',
            'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'QOS', 'MODES', 'declare', 'declare_physics',
            'run_node', 'stamp_to_ns', 'ns_to_stamp', 'TickTiming', 'TIMING_SUFFIX',
-           'refuse_undeclared', 'undeclared_message', 'declare_realtime',
-           'apply_realtime_settings', 'begin_timing', 'at_start', 'EventChannel']
+           'refuse_undeclared', 'undeclared_message', 'declare_realtime', 'declare_loop',
+           'NodeLoop', 'refuse_loop_options',
+           'apply_realtime_settings', 'begin_timing', 'EventChannel']
 
 #: Every graph topic (names and QoS from :mod:`eha_ros.graph`): reliable, last 1000
 #: kept, volatile: a reader outside the loop (recorder, health monitor) may lag 1 s at 1 kHz.
@@ -181,9 +184,10 @@ class TickTiming:
         self._array = DiagnosticArray
         self.startup = {}
         self.gc = None
-        self._jitter_hist = [0] * JITTER_BINS
+        self._jitter_hist = np.zeros(JITTER_BINS, np.int64)
         self.pub = advertise(node, DiagnosticArray, TOPIC_DIAGNOSTICS)
         self.timer = None
+        self.lock = None  # a tick loop's lock (NodeLoop), taken to read and restart the window
 
     def start(self, start_ns: int, startup: dict | None = None) -> None:
         """Begin at the graph's start ``start_ns`` (``time.monotonic_ns``): statistics and
@@ -194,7 +198,7 @@ class TickTiming:
         self.ticks = self.late = self.slipped = self.overruns = self.resent = 0
         self._w_ticks = self._w_late = self._w_slipped = self._w_busy_ns = 0
         self._intervals = []
-        self._jitter_hist = [0] * JITTER_BINS
+        self._jitter_hist = np.zeros(JITTER_BINS, np.int64)
         self._last_ns = None
         self._due_ns = start_ns
         self._w_start = self._start_ns = max(start_ns, time.monotonic_ns())
@@ -260,18 +264,20 @@ class TickTiming:
             'Target frequency (Hz)': self.target_hz,
         }
         if self.realtime:
-            dev = [abs(i - self.period_ns) * 1e-6 for i in self._intervals]
-            dev.sort()
-            for i in self._intervals:
-                self._jitter_hist[min(len(self._jitter_hist) - 1,
-                                      abs(i - self.period_ns) // JITTER_BIN_NS)] += 1
+            # numpy, not a Python loop over the window's ticks: this runs in the executor's
+            # thread and holds the GIL that the tick loop's thread needs (a millisecond per
+            # report with loops, the size of a late tick)
+            dev_ns = np.sort(np.abs(np.asarray(self._intervals, np.int64) - self.period_ns))
+            np.add.at(self._jitter_hist, np.minimum(dev_ns // JITTER_BIN_NS, JITTER_BINS - 1), 1)
+            dev = dev_ns * 1e-6
             total = self.ticks + self.slipped
             out.update({
                 'Minimum acceptable frequency (Hz)': self.target_hz * (1 - self.tolerance),
                 'Maximum acceptable frequency (Hz)': self.target_hz * (1 + self.tolerance),
-                'Period jitter p99 (ms)': round(dev[min(len(dev) - 1, int(0.99 * len(dev)))],
-                                                4) if dev else 0.0,
-                'Period jitter max (ms)': round(dev[-1], 4) if dev else 0.0,
+                'Period jitter p99 (ms)': round(float(dev[min(len(dev) - 1,
+                                                              int(0.99 * len(dev)))]), 4)
+                if len(dev) else 0.0,
+                'Period jitter max (ms)': round(float(dev[-1]), 4) if len(dev) else 0.0,
                 'Period jitter p99 since startup (ms)': self._jitter_p99_ms(),
                 'Late ticks since startup': self.late,
                 'Slipped ticks since startup': self.slipped,
@@ -300,15 +306,11 @@ class TickTiming:
         return out
 
     def _jitter_p99_ms(self) -> float:
-        n = sum(self._jitter_hist)
-        if not n:
+        cum = np.cumsum(self._jitter_hist)
+        if not cum[-1]:
             return 0.0
-        seen = 0
-        for k, c in enumerate(self._jitter_hist):
-            seen += c
-            if seen >= 0.99 * n:
-                return round((k + 1) * JITTER_BIN_NS * 1e-6, 4)
-        return round(len(self._jitter_hist) * JITTER_BIN_NS * 1e-6, 4)
+        k = int(np.searchsorted(cum, 0.99 * cum[-1]))  # first bin holding the 99th percentile
+        return round((k + 1) * JITTER_BIN_NS * 1e-6, 4)
 
     def _grade(self, v: dict, late: int, slipped: int):
         from diagnostic_msgs.msg import DiagnosticStatus
@@ -327,7 +329,11 @@ class TickTiming:
 
     def publish(self) -> None:
         from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-        values = self.values()
+        if self.lock is None:
+            values = self.values()
+        else:
+            with self.lock:  # the tick loop's thread counts into the same window
+                values = self.values()
         level, message = self._level
         st = DiagnosticStatus(name=self.name, message=message,
                               hardware_id=self.node.get_fully_qualified_name())
@@ -394,23 +400,6 @@ def begin_timing(node: Node, timing: TickTiming, start_mono_ns: int, warm_up_s: 
                                  'Discovery (s)': round(discovery, 3)})
 
 
-def at_start(node: Node, start_mono_ns: int, callback: Callable[[], None]) -> None:
-    """Call ``callback`` once at ``start_mono_ns`` (``time.monotonic_ns``), or now if that has
-    passed."""
-    from rclpy.clock import Clock as RosClock, ClockType
-    delay_ns = start_mono_ns - time.monotonic_ns()
-    if delay_ns <= 0:
-        callback()
-        return
-    timer = None
-
-    def once():
-        timer.cancel()
-        callback()
-    timer = node.create_timer(delay_ns * 1e-9, once,
-                              clock=RosClock(clock_type=ClockType.STEADY_TIME))
-
-
 #: Executors a node can spin in (environment variable ``EHA_ROS_EXECUTOR``).
 EXECUTORS = ('single', 'events')
 
@@ -472,10 +461,12 @@ def declare_realtime(node: Node):
     """Declare the real-time settings of a ticking node (``ros2_control_node``'s names) and
     return them as :class:`eha_ros.realtime.RealtimeSettings`."""
     from eha_ros.realtime import RealtimeSettings
-    priority = declare(node, 'thread_priority', 0, 'SCHED_FIFO priority of every thread of '
-                       'the process (1-99; 0: normal scheduling)', 0, 99)
-    cpus = declare(node, 'cpu_affinity', [-1], 'CPUs to pin every thread of the process to '
-                   '([-1]: no pinning)', ints=True)
+    priority = declare(node, 'thread_priority', 0, 'SCHED_FIFO priority (1-99; 0: normal '
+                       'scheduling) of the tick loop thread where the node has one (realtime), '
+                       'else of every thread of the process', 0, 99)
+    cpus = declare(node, 'cpu_affinity', [-1], 'CPUs to pin the tick loop thread to where the '
+                   'node has one (realtime), else every thread of the process ([-1]: no '
+                   'pinning)', ints=True)
     lock = declare(node, 'lock_memory', False, 'lock the process memory in RAM (mlockall), '
                    'so no page fault stalls a tick')
     cpus = tuple(int(c) for c in cpus if int(c) >= 0)
@@ -484,6 +475,144 @@ def declare_realtime(node: Node):
                                 lock_memory=bool(lock))
     except ValueError as exc:
         raise ParameterError(str(exc)) from None
+
+
+def declare_loop(node: Node) -> dict:
+    """Declare the parameters of a ticking node's realtime loop (:class:`NodeLoop`)."""
+    return {
+        'executor_priority': declare(
+            node, 'executor_priority', 0, 'realtime: SCHED_FIFO priority of the process\'s '
+            'threads other than the tick loop (the executor, the middleware; 0: normal '
+            'scheduling); thread_priority is the tick loop thread\'s', 0, 99),
+        'switch_interval_s': declare(
+            node, 'switch_interval_s', 0.0, 'the interpreter\'s GIL switch interval '
+            '(sys.setswitchinterval) [s]: how long a thread that wants the GIL waits before '
+            'asking its holder for it (0: Python\'s default, 5 ms)', 0.0, 0.1),
+        'trace_file': declare(
+            node, 'trace_file', '', 'realtime: write a timing trace of every tick here '
+            '(.npz, at shutdown; empty: no trace)'),
+        'trace_ticks': declare(
+            node, 'trace_ticks', 120000, 'realtime: ticks the trace has room for (ticks '
+            'beyond are counted as dropped and the trace flagged incomplete)', 1, 10 ** 8),
+    }
+
+
+def refuse_loop_options(options: dict, why: str) -> None:
+    """A node without a tick loop (``why``: e.g. 'a lockstep run') refuses the loop's
+    parameters that would otherwise be ignored."""
+    if options.get('trace_file'):
+        raise ParameterError(f'trace_file needs a tick loop, and {why} has none (its ticks have '
+                             'no wall-clock schedule to be late on)')
+    if options.get('executor_priority'):
+        raise ParameterError(f'executor_priority needs a tick loop, and {why} has none: '
+                             'thread_priority sets every thread')
+
+
+#: The tick loop thread's name (``/proc/<pid>/task/<tid>/comm``, ``top -H``, ``ps -L``).
+LOOP_THREAD_NAME = 'eha_tick'
+
+
+class NodeLoop:
+    """A ticking node's realtime loop: :class:`eha_ros.tickloop.TickLoop` calling
+    ``on_wake(now_ns)`` at the node's period from the graph's start, in a thread of its own.
+
+    The loop thread alone gets ``settings.thread_priority`` (``SCHED_FIFO``) and
+    ``settings.cpu_affinity``, and a timer slack of 1 ns (``PR_SET_TIMERSLACK``: a normal thread's
+    sleeps end up to 50 us late by default); the other threads of the process get
+    ``executor_priority``.  Every wake holds :attr:`lock` (reentrant), which the node's
+    executor callbacks that touch the tick's state take too.  With ``trace_file``, a
+    :class:`eha_ros.tickloop.TickTrace` records every tick (the node calls :meth:`record`)
+    and is written at :meth:`close`.  An exception in a tick sets ``node.fatal`` (the node
+    exits 1 naming it)."""
+
+    def __init__(self, node: Node, period_ns: int, on_wake: Callable[[int], None], settings,
+                 options: dict):
+        from eha_ros.tickloop import TickLoop, TickTrace
+        self.node = node
+        self.on_wake = on_wake
+        self.settings = settings
+        self.options = dict(options)
+        self.lock = threading.RLock()
+        self.trace = (TickTrace(int(options['trace_ticks']), period_ns)
+                      if options.get('trace_file') else None)
+        self.loop = TickLoop(f'{node.get_name()} tick', period_ns, self._wake,
+                             priority=settings.thread_priority, lock=self.lock)
+        self.loop.on_thread_start = self._on_thread_start
+        self.deadline_ns = None  # the deadline of the current wake
+        self._closed = False
+
+    def apply_process_settings(self) -> None:
+        """Memory lock for the process, ``executor_priority`` for its threads, the switch
+        interval; each refusal is one warning.  Then the first full garbage collection, now
+        (:func:`eha_ros.realtime.settle_gc`): at the start it would hold the GIL for over
+        100 ms of CPU (a quarter of a second beside two CPU hogs) while the loop's first
+        ticks fall due; the start's own collection then only has what start-up added."""
+        from eha_ros.realtime import RealtimeSettings, apply_realtime, settle_gc
+        settle_gc()
+        if self.options.get('switch_interval_s'):
+            sys.setswitchinterval(float(self.options['switch_interval_s']))
+        rest = RealtimeSettings(thread_priority=int(self.options.get('executor_priority', 0)),
+                                lock_memory=self.settings.lock_memory)
+        if rest.thread_priority or rest.lock_memory:
+            for line in apply_realtime(rest):
+                self.node.get_logger().warning(line)
+
+    def _on_thread_start(self) -> None:
+        from eha_ros.realtime import apply_realtime, RealtimeSettings
+        try:
+            import ctypes
+            libc = ctypes.CDLL(None)
+            libc.prctl(29, 1, 0, 0, 0)  # PR_SET_TIMERSLACK: 1 ns
+            libc.prctl(15, ctypes.c_char_p(LOOP_THREAD_NAME.encode()), 0, 0, 0)  # PR_SET_NAME
+        except (AttributeError, OSError):
+            pass
+        if self.settings.cpu_affinity:
+            pinned = RealtimeSettings(cpu_affinity=self.settings.cpu_affinity)
+            for line in apply_realtime(pinned, threads='current'):
+                self.node.get_logger().warning(line)
+        for line in self.loop.warnings:
+            self.node.get_logger().warning(line)
+        if self.trace is not None:
+            self.trace.bind_thread()
+
+    def start(self, anchor_ns: int, gc=None) -> None:
+        """Start the loop: wake k at ``anchor_ns`` + k periods (``time.monotonic_ns``)."""
+        if self.trace is not None:
+            self.trace.gc = gc
+        self.loop.start(anchor_ns)
+
+    def _wake(self, due_ns: int, woke_ns: int, ran_ns: int) -> None:
+        self.deadline_ns = due_ns
+        tr = self.trace
+        if tr is not None:
+            tr.begin_wake(woke_ns, ran_ns)
+        try:
+            self.on_wake(ran_ns)
+        except Exception as exc:
+            self.node.fatal = f'tick loop stopped: {type(exc).__name__}: {exc}'
+            raise
+        if tr is not None:
+            tr.end_wake()
+
+    def record(self, k: int, due_ns: int, work_end_ns: int, published_ns: int) -> None:
+        """Tick ``k`` of the current wake, for the trace (nothing without one)."""
+        if self.trace is not None:
+            self.trace.tick(k, due_ns, work_end_ns, published_ns)
+
+    def close(self) -> None:
+        """Stop the loop and write the trace (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        self.loop.stop()
+        if self.trace is not None:
+            path = self.options['trace_file']
+            self.trace.save(path, self.node.get_name())
+            self.trace.close()
+            if self.trace.dropped:
+                self.node.get_logger().warning(
+                    f'timing trace {path}: {self.trace.dropped} ticks beyond its '
+                    f'{self.trace.capacity} (trace_ticks) were not recorded')
 
 
 def apply_realtime_settings(node: Node, settings) -> None:

@@ -3,8 +3,10 @@
 
 Realtime mode: each plant state clocks one control step (``trigger: state``, the default: the
 sensor sample triggers the digital controller, so it runs at the plant's rate and no
-timer of its own competes for the processor), or a wall-clock timer at ``rate_hz`` does
-(``trigger: timer``); either uses the latest command and the latest sensor reading.
+timer of its own competes for the processor), or a loop at ``rate_hz`` in a thread of its own
+does (``trigger: timer``; absolute deadlines from the graph's start,
+:class:`eha_ros.nodes.common.NodeLoop`); either uses the latest command and the latest sensor
+reading.
 
 Lockstep mode: for each plant tick it waits for both the state and the command of
 that tick (matching stamps), then answers with the current for that tick; a repeated tick
@@ -46,10 +48,10 @@ from eha_ros.physics.events import CONTROLLER_RUNTIME, EventSchedule, parse_even
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import PositionController
 
-from .common import (advertise, apply_realtime_settings, at_start, begin_timing, declare,
-                     declare_physics, declare_realtime, EventChannel, MODES, run_node,
-                     stamp_to_ns, subscribe, TickTiming, TOPIC_COMMAND, TOPIC_SERVOVALVE,
-                     TOPIC_STATE, validator)
+from .common import (advertise, apply_realtime_settings, begin_timing, declare, declare_loop,
+                     declare_physics, declare_realtime, EventChannel, MODES, NodeLoop,
+                     refuse_loop_options, run_node, stamp_to_ns, subscribe, TickTiming,
+                     TOPIC_COMMAND, TOPIC_SERVOVALVE, TOPIC_STATE, validator)
 from .handshake import Handshake
 
 GAINS = CONTROLLER_RUNTIME
@@ -80,6 +82,7 @@ class Controller(Node):
                                        'commanding after this long without a plant state [s] '
                                        '(wall time)', 1e-3, 3600.0)
         realtime = declare_realtime(self)
+        loop_options = declare_loop(self)
         if self.trigger not in TRIGGERS:
             raise ParameterError(f'trigger {self.trigger!r} must be one of {", ".join(TRIGGERS)}')
         self.mode = self.get_parameter('mode').value
@@ -115,8 +118,21 @@ class Controller(Node):
         for entity, topic in ((self.pub, TOPIC_SERVOVALVE), (command_sub, TOPIC_COMMAND),
                               (state_sub, TOPIC_STATE), (self.timing.pub, TOPIC_DIAGNOSTICS)):
             self.handshake.watch(entity, topic)
+        self.fatal = None
+        self.rt_loop = None
+        if self.mode == 'realtime' and self.trigger == 'timer':  # a thread of its own
+            self.rt_loop = NodeLoop(self, self.period_ns, self._on_loop_wake, realtime,
+                                    loop_options)
+            self.timing.lock = self.rt_loop.lock
+        else:
+            refuse_loop_options(loop_options, 'a controller clocked by states (trigger: state) '
+                                'or in lockstep')
+        self._lock = self.rt_loop.lock if self.rt_loop is not None else _NoLock()
         self._warm_up_s = (time.monotonic_ns() - init_ns) * 1e-9
-        apply_realtime_settings(self, realtime)
+        if self.rt_loop is not None:
+            self.rt_loop.apply_process_settings()
+        else:
+            apply_realtime_settings(self, realtime)
 
     def _on_start(self, start_ns: int, mode: str) -> None:
         from rclpy.clock import Clock as RosClock, ClockType
@@ -128,9 +144,9 @@ class Controller(Node):
                               clock=steady),
             self.create_timer(1.0, self._publish_state_watchdog, clock=steady))
         begin_timing(self, self.timing, start_mono, self._warm_up_s)
-        if self.mode == 'realtime' and self.trigger == 'timer':
-            at_start(self, start_mono,
-                     lambda: self.create_timer(self.period_s, self._on_own_timer))
+        if self.rt_loop is not None:
+            self._rt_anchor = start_mono
+            self.rt_loop.start(start_mono, self.timing.gc)
 
     def _params(self, changes):
         values = {n: self.get_parameter(n).value for n in GAINS}
@@ -138,8 +154,13 @@ class Controller(Node):
         return replace(self.base, **values)
 
     def _on_set(self, changes):
+        with self._lock:
+            self._on_set_locked(changes)
+
+    def _on_set_locked(self, changes):
         frozen = {'mode', 'rate_hz', 'params_file', 'trigger', 'events', 'thread_priority',
-                  'cpu_affinity', 'lock_memory', 'state_timeout_s'} & set(changes)
+                  'cpu_affinity', 'lock_memory', 'state_timeout_s', 'executor_priority',
+                  'switch_interval_s', 'trace_file', 'trace_ticks'} & set(changes)
         if frozen:
             raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
         gains = {k: v for k, v in changes.items() if k in GAINS}
@@ -213,14 +234,28 @@ class Controller(Node):
         current = self.pid.update(self.command_m, self.measured_m)
         self._send(self.get_clock().now().to_msg(), current)
 
-    def _on_own_timer(self):
+    def _on_loop_wake(self, now: int):
+        """The control loop woke (its thread, the lock held): one step on the latest
+        setpoint and reading (a late wake runs one step: the timer's ticks in between slip)."""
         began = time.monotonic_ns()
-        self.timing.on_schedule(began)
+        self.timing.on_schedule(now)
         self._on_timer()
+        due = self.rt_loop.deadline_ns
+        end = time.monotonic_ns()
+        self.rt_loop.record((due - self._rt_anchor) // self.period_ns, due, end, end)
         self.timing.busy(began)
+
+    def close(self) -> None:
+        """Stop the control loop (and write its timing trace)."""
+        if self.rt_loop is not None:
+            self.rt_loop.close()
 
     # both modes ----------------------------------------------------------------------------
     def _on_command(self, msg: ActuatorCommand):
+        with self._lock:
+            self._on_command_locked(msg)
+
+    def _on_command_locked(self, msg: ActuatorCommand):
         self.command_m = msg.position_setpoint_m
         if self.mode == 'lockstep':
             t_ns = stamp_to_ns(msg.header.stamp)
@@ -228,6 +263,10 @@ class Controller(Node):
             self._try_answer()
 
     def _on_state(self, msg: ActuatorState):
+        with self._lock:
+            self._on_state_locked(msg)
+
+    def _on_state_locked(self, msg: ActuatorState):
         self._last_state_ns = time.monotonic_ns()
         self._plant_done = msg.final_state
         if self._state_timed_out:
@@ -270,6 +309,16 @@ class Controller(Node):
         self._send(stamp, current)
         self.timing.tick(began)
         self.timing.busy(began)
+
+
+class _NoLock:
+    """Every step runs in the executor's thread: nothing to lock."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
 
 
 def main(args=None) -> int:

@@ -16,10 +16,13 @@ it publishes the common start time at which it and the other ticking nodes start
 tick whose time is at least T, before that tick's steps, and published on ``/eha/events``
 with its tick, as is every live parameter set.
 
-Realtime mode: a wall-clock timer at ``rate_hz``; simulated time is locked to the wall clock:
-when a timer call comes late (a busy machine) the plant catches up the ticks that fell due, up
-to ``max_catch_up`` at once; a longer stall is a slip - the backlog beyond that is dropped, the
-simulation resumes from where it was, and the slip is counted and logged.
+Realtime mode: the tick runs in a thread of its own (:class:`eha_ros.nodes.common.NodeLoop`:
+absolute-deadline sleeps on the monotonic clock from the graph's start, ``thread_priority``
+and ``cpu_affinity`` for that thread only, the executor's and the middleware's threads at
+``executor_priority``; ``trace_file`` records every tick's timing); simulated time is locked
+to the wall clock: when a wake comes late (a busy machine) the plant catches up the ticks that
+fell due, up to ``max_catch_up`` at once; a longer stall is a slip - the backlog beyond that
+is dropped, the simulation resumes from where it was, and the slip is counted and logged.
 
 Lockstep mode: the plant is the time source:
 it publishes ``/clock`` and the state of tick k, and advances to tick k+1 only when the
@@ -88,9 +91,9 @@ from eha_ros.physics.maintenance import PreflightCheck, ValveTest, VALVE_TEST_PR
 from eha_ros.watchdog import SAFE_ACTIONS, TickWatchdog
 
 from .common import (advertise, apply_realtime_settings, begin_timing, declare,
-                     declare_physics, declare_realtime, EventChannel, MODES, ns_to_stamp,
-                     run_node, stamp_to_ns, subscribe, TickTiming, TOPIC_CLOCK,
-                     TOPIC_SERVOVALVE, TOPIC_STATE, validator)
+                     declare_loop, declare_physics, declare_realtime, EventChannel, MODES,
+                     NodeLoop, ns_to_stamp, refuse_loop_options, run_node, stamp_to_ns,
+                     subscribe, TickTiming, TOPIC_CLOCK, TOPIC_SERVOVALVE, TOPIC_STATE, validator)
 from .handshake import StartCoordinator
 
 #: The status of each operating condition (:func:`eha_ros.physics.state.operating_condition`).
@@ -143,6 +146,7 @@ class ServovalvePlant(Node):
                          "[,name=value]' entries, each applied at the first tick whose time "
                          "is at least T s (empty entries are ignored)")
         realtime = declare_realtime(self)
+        loop_options = declare_loop(self)
         valve_test = declare(self, 'valve_test', False, 'run the diagnostic valve test (map '
                              'sweep, jack clamped) before operating')
         flows = declare(self, 'valve_test_flows_m3_s',  # those of the valve_test scenario
@@ -225,27 +229,43 @@ class ServovalvePlant(Node):
             self.clock_pub = advertise(self, Clock, TOPIC_CLOCK)
         self.handshake = StartCoordinator(self, handshake_nodes, self.mode,
                                           handshake_timeout_s, start_delay_s,
-                                          on_start=self._on_start, grid=self._start_timer)
+                                          on_start=self._on_start)
         for entity, topic in ((self.state_pub, TOPIC_STATE), (command_sub, TOPIC_SERVOVALVE),
                               (self.timing.pub, '/diagnostics')):
             self.handshake.watch(entity, topic)
         if self.mode == 'lockstep':
             self.handshake.watch(self.clock_pub, TOPIC_CLOCK)
         self._watchdog = self.create_timer(0.01, self._on_watchdog, clock=steady)
+        self.rt_loop = None
+        if self.mode == 'realtime':  # the tick in a thread of its own
+            self.rt_loop = NodeLoop(self, period_ns, self._on_loop_wake, realtime, loop_options)
+            self.timing.lock = self.rt_loop.lock
+        else:
+            refuse_loop_options(loop_options, 'a lockstep plant')
+        self._lock = self.rt_loop.lock if self.rt_loop else _NoLock()
         self._warm_up_s = (time.monotonic_ns() - init_ns) * 1e-9
-        apply_realtime_settings(self, realtime)
+        if self.rt_loop is not None:
+            self._state_msg()  # the state message's first fill now, not in tick 0
+            self.rt_loop.apply_process_settings()
+        else:
+            apply_realtime_settings(self, realtime)
         self.get_logger().info(f'model {self.model}, dt {dt_s:g} s, {self.steps_per_tick} '
                                f'steps per tick, {self.mode}; waiting for '
                                f'{", ".join(self.handshake.nodes)}')
 
     # parameters --------------------------------------------------------------------------
     def _on_set(self, changes):
+        with self._lock:
+            self._on_set_locked(changes)
+
+    def _on_set_locked(self, changes):
         frozen = {'model', 'dt_s', 'rate_hz', 'mode', 'seed', 'params_file', 'valve_test',
                   'command_timeout_s', 'command_timeout_action', 'command_wait_s',
                   'valve_test_flows_m3_s', 'valve_test_procedure', 'preflight_check',
                   'handshake_nodes',
                   'handshake_timeout_s', 'start_delay_s', 'events', 'thread_priority',
-                  'cpu_affinity', 'lock_memory'} & set(changes)
+                  'cpu_affinity', 'lock_memory', 'executor_priority', 'switch_interval_s',
+                  'trace_file', 'trace_ticks'} & set(changes)
         if frozen:
             raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
         wear = {k: v for k, v in changes.items() if k in PLANT_RUNTIME}
@@ -299,6 +319,10 @@ class ServovalvePlant(Node):
         """``servovalve_plant: command watchdog`` on ``/diagnostics``: ERROR while an action is
         in force (with the reason and the tick it began), WARN once it has tripped and
         resumed, else OK (with the count of ticks that ran on a stale command)."""
+        with self._lock:
+            self._publish_watchdog_locked()
+
+    def _publish_watchdog_locked(self) -> None:
         from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
         wd = self.command_watchdog
         began = getattr(self, '_watchdog_began', None)
@@ -463,29 +487,20 @@ class ServovalvePlant(Node):
             return
         self._watchdog.cancel()  # realtime: it only watched the handshake
         self._anchor(start_mono)
+        self.rt_loop.start(start_mono, self.timing.gc)
 
     def _anchor(self, start_mono_ns: int) -> None:
         """Realtime: tick k falls due at ``start_mono_ns`` plus k periods."""
         self._rt_anchor = start_mono_ns
         self._rt_next = 0
 
-    def _start_timer(self) -> tuple:
-        """Realtime: the tick timer, started as the handshake completes; the common start is
-        chosen on its grid (``(creation time, period)``, ns), so tick k's call comes when tick
-        k falls due (calls before the start do nothing)."""
-        origin = time.monotonic_ns()
-        self.create_timer(self.period_ns * 1e-9, self._on_timer, clock=self._steady)
-        return origin, self.period_ns
-
     # realtime ----------------------------------------------------------------------------
     def _now_ns(self) -> int:
         """Wall-clock time [ns] that realtime ticks fall due on (the steady clock)."""
         return self._steady.now().nanoseconds
 
-    def _on_timer(self):
-        if not self._started:
-            return
-        now = self._now_ns()
+    def _on_loop_wake(self, now: int):
+        """The tick loop woke (its thread, the lock held): run the ticks due by ``now``."""
         began = time.monotonic_ns()
         try:
             self._catch_up(now)
@@ -510,20 +525,26 @@ class ServovalvePlant(Node):
             self.get_logger().warning(
                 f'{slip} ticks behind the wall clock: slipped ({self.slipped_ticks} in all)',
                 throttle_duration_sec=1.0)
+        mono = time.monotonic_ns
         for _ in range(behind):
             k = self._rt_next
             if k > 0 and not self._advance():
                 return
             self._rt_next += 1
-            self.state_pub.publish(self._state_msg())
+            msg = self._state_msg()
+            work_end = mono()
+            self.state_pub.publish(msg)
+            due = self._rt_anchor + k * self.period_ns
+            self.rt_loop.record(k, due, work_end, mono())
             if self._unanswered_since is None:
                 self._unanswered_since = now
-            self.timing.tick(now, now - (self._rt_anchor + k * self.period_ns))
+            self.timing.tick(now, now - due)
 
     def _on_command(self, msg: ServovalveCommand):
         if self.mode == 'realtime':
-            self.current_a = msg.current_command_a
-            self._fresh, self._unanswered_since = True, None
+            with self._lock:
+                self.current_a = msg.current_command_a
+                self._fresh, self._unanswered_since = True, None
             return
         if stamp_to_ns(msg.header.stamp) != self.plant.time_ns:
             return  # an answer to a tick already advanced (a re-sent tick)
@@ -567,6 +588,21 @@ class ServovalvePlant(Node):
                                       're-publishing it')
             self.timing.resent += 1
             self._publish_tick()
+
+    def close(self) -> None:
+        """Stop the tick loop (and write its timing trace)."""
+        if self.rt_loop is not None:
+            self.rt_loop.close()
+
+
+class _NoLock:
+    """Lockstep: every tick runs in the executor's thread; nothing to lock."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
 
 
 def main(args=None) -> int:

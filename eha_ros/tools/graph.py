@@ -270,12 +270,18 @@ def build_config(args):
         raise UsageError(f'{args.record} exists: refusing to overwrite it')
     if args.record and not Path(args.record).resolve().parent.is_dir():
         raise UsageError(f'folder of {args.record} does not exist')
+    if args.trace and Path(args.trace).exists():
+        raise UsageError(f'{args.trace} exists: refusing to overwrite it')
+    if args.trace and not Path(args.trace).resolve().parent.is_dir():
+        raise UsageError(f'folder of {args.trace} does not exist')
+    if args.trace and args.record and Path(args.trace).resolve() == Path(args.record).resolve():
+        raise UsageError('--trace and --record name the same file')
     config = GraphConfig(scenario=options['scenario'], model=options['model'],
                          mode=options['mode'], duration_s=args.duration,
                          rate_hz=float(options['rate_hz']), dt_s=float(options['dt_s']),
                          seed=int(options['seed']), health=args.health,
                          record=args.record or '', events=parse_events(args.event),
-                         node_params=node_params, rt=args.rt,
+                         node_params=node_params, rt=args.rt, trace=args.trace or '',
                          handshake_timeout_s=min(float(args.timeout), 600.0))
     if not args.health:  # a params file's health monitor section has nothing to apply to
         config.node_params.pop('health_monitor', None)
@@ -283,6 +289,7 @@ def build_config(args):
         config.node_params.pop('recorder', None)
     try:
         config.node_parameters()  # refuses unknown nodes, parameters and event targets
+        config.with_trace_files(config.node_parameters(), Path('.'))  # refuses a lockstep trace
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     return config
@@ -355,6 +362,8 @@ def summarize(result, processes: bool, recording_info=None) -> dict:
               if name.endswith(TIMING_SUFFIX)}
     if timing:
         out['timing'] = timing
+    if result.trace is not None:
+        out['trace'] = {'file': cfg.trace, 'nodes': result.trace}
     return out
 
 
@@ -415,6 +424,16 @@ def _print_text(summary: dict, out=sys.stdout) -> None:
                   f'{v.get("Overruns since startup")} overruns, jitter p99 '
                   f'{v.get("Period jitter p99 since startup (ms)")} ms, '
                   f'{v.get("Busy (core)")} core', file=out)
+    if 'trace' in s:
+        from eha_ros.tickloop import describe_shares
+        print(f'  timing trace written to {s["trace"]["file"]}', file=out)
+        for node, t in s['trace']['nodes'].items():
+            if 'missing' in t:
+                print(f'  {node} trace: {t["missing"]}', file=out)
+                continue
+            print(f'  {node} trace: {describe_shares(t["shares"])}'
+                  + ('' if t['complete'] else f' (INCOMPLETE: {t["dropped"]} ticks not '
+                     'recorded)'), file=out)
 
 
 def main(argv=None) -> int:
@@ -452,6 +471,9 @@ def main(argv=None) -> int:
     ap.add_argument('--rt', action='store_true',
                     help='real-time settings for the ticking nodes: SCHED_FIFO priority, '
                          'locked memory (see README: what a rig needs)')
+    ap.add_argument('--trace', metavar='FILE.mcap',
+                    help='realtime: write a timing trace of every tick of every node with a '
+                         'tick loop to FILE (MCAP), each late episode with its cause')
     ap.add_argument('--timeout', type=float, default=60.0, metavar='S',
                     help='give up when the start-up handshake or a state takes longer than '
                          'S seconds (default 60)')
