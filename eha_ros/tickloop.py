@@ -82,6 +82,8 @@ def _build_sleep():
 
     @numba.njit(nogil=True)
     def kernel(deadline_ns, ts):
+        gettime(_CLOCK_MONOTONIC, ts.ctypes.data)
+        ts[2] = ts[0] * 1000000000 + ts[1]  # when the thread went to sleep
         ts[0] = deadline_ns // 1000000000
         ts[1] = deadline_ns % 1000000000
         while nanosleep(_CLOCK_MONOTONIC, _TIMER_ABSTIME, ts.ctypes.data, 0) == _EINTR:
@@ -89,12 +91,12 @@ def _build_sleep():
         gettime(_CLOCK_MONOTONIC, ts.ctypes.data)
         return ts[0] * 1000000000 + ts[1]
 
-    ts = np.zeros(2, np.int64)
+    ts = np.zeros(3, np.int64)
     kernel(time.monotonic_ns(), ts)  # compile now, not in the first tick
     return kernel
 
 
-def sleep_until(deadline_ns: int, _ts=np.zeros(2, np.int64)) -> int:
+def sleep_until(deadline_ns: int, _ts=np.zeros(3, np.int64)) -> int:
     """Sleep until ``deadline_ns`` on the monotonic clock (``time.monotonic_ns``), the GIL
     released; returns the time [ns] the kernel woke the thread (read before the GIL is taken
     back).  Not thread-safe with its default buffer: a :class:`TickLoop` has its own."""
@@ -126,6 +128,7 @@ TRACE_COLUMNS = {
     # per tick
     'tick': 'the tick (sample) index k: due at the anchor plus k periods',
     'due_ns': 'when the tick fell due [ns, monotonic clock]',
+    'slept_ns': 'when the loop thread went to sleep for the wake that ran it [ns]',
     'woke_ns': 'when the kernel woke the loop thread for it [ns]',
     'ran_ns': 'when the thread ran Python again (the GIL taken) [ns]',
     'work_end_ns': 'when the tick\'s work (the step) ended [ns]',
@@ -142,10 +145,6 @@ TRACE_COLUMNS = {
     'steal_jiffies': 'host steal of the CPU woken on so far [USER_HZ ticks]',
     'steal_all_jiffies': 'host steal of every CPU so far [USER_HZ ticks]',
 }
-_TICK_COLS = ('tick', 'due_ns', 'woke_ns', 'ran_ns', 'work_end_ns', 'published_ns', 'wake')
-_WAKE_COLS = ('cpu', 'run_delay_ns', 'thread_cpu_ns', 'other_threads_cpu_ns',
-              'voluntary_switches', 'involuntary_switches', 'gc_pause_ns', 'steal_jiffies',
-              'steal_all_jiffies')
 
 
 class TickTrace:
@@ -170,6 +169,7 @@ class TickTrace:
         self._getcpu = _sched_getcpu()
         self._wake_first = 0
         self._woke = self._ran = 0
+        self._slept = -1
         self.clk_tck = os.sysconf('SC_CLK_TCK')
 
     def bind_thread(self) -> None:
@@ -178,8 +178,8 @@ class TickTrace:
             os.close(self._schedstat)
         self._schedstat = _open('/proc/thread-self/schedstat')
 
-    def begin_wake(self, woke_ns: int, ran_ns: int) -> None:
-        self._woke, self._ran = woke_ns, ran_ns
+    def begin_wake(self, woke_ns: int, ran_ns: int, slept_ns: int = -1) -> None:
+        self._woke, self._ran, self._slept = woke_ns, ran_ns, slept_ns
         self._wake_first = self.n
 
     def tick(self, k: int, due_ns: int, work_end_ns: int, published_ns: int) -> None:
@@ -191,6 +191,7 @@ class TickTrace:
         c = self.cols
         c['tick'][i] = k
         c['due_ns'][i] = due_ns
+        c['slept_ns'][i] = self._slept
         c['woke_ns'][i] = self._woke
         c['ran_ns'][i] = self._ran
         c['work_end_ns'][i] = work_end_ns
@@ -282,7 +283,8 @@ class TickLoop:
         self.policy = None
         self._stop = threading.Event()
         self._thread = None
-        self._ts = np.zeros(2, np.int64)
+        self._ts = np.zeros(3, np.int64)
+        self.slept_ns = -1  # when the thread went to sleep for the current wake
         self.on_thread_start = None
         global _sleep_kernel
         if _sleep_kernel is None:
@@ -317,6 +319,7 @@ class TickLoop:
             while not self._stop.is_set():
                 woke = int(kernel(anchor + k * period, ts))
                 ran = now()
+                self.slept_ns = int(ts[2])
                 if self._stop.is_set():
                     break
                 with self.lock:
@@ -345,7 +348,8 @@ def late_episodes(trace: dict, period_ns: int, clk_tck: int = 100) -> list[dict]
 
     Each episode: ``first_tick``, ``ticks`` (late ticks), ``lateness_ms`` (of its first tick),
     the evidence over its window (from the end of the wake before it to the end of its last
-    wake): ``overrun_ms`` (the previous wake's work past the first tick's due time),
+    wake): ``overrun_ms`` (how long after the first tick fell due the
+    thread went to sleep for it: the previous wake's work, its evidence, its GIL waits),
     ``gil_wait_ms`` (woken to running, summed over its wakes), ``gc_pause_ms``,
     ``run_queue_ms`` (the loop thread's run-queue wait), ``voluntary_switches``,
     ``involuntary_switches``, ``other_threads_cpu_ms`` (our other threads ran that long),
@@ -386,7 +390,11 @@ def late_episodes(trace: dict, period_ns: int, clk_tck: int = 100) -> list[dict]
                 return None
             return float(end - start) * scale
 
-        prev_end = int(trace['published_ns'][prev]) if prev >= 0 else int(due[i])
+        # our own previous work: the thread went to sleep after this tick fell due (the last
+        # wake's ticks, its evidence and any wait for the GIL before it slept)
+        slept = int(trace['slept_ns'][i]) if 'slept_ns' in trace else -1
+        prev_end = slept if slept >= 0 else (
+            int(trace['published_ns'][prev]) if prev >= 0 else int(due[i]))
         overrun = max(0, prev_end - int(due[i])) * 1e-6
         gil = float(sum(int(ran[r]) - int(trace['woke_ns'][r]) for r in first_rows)) * 1e-6
         gc_ms = delta('gc_pause_ns', 1e-6)

@@ -152,7 +152,8 @@ def _trace(late_ms, period=MS, **evidence):
     due = np.arange(n, dtype=np.int64) * period
     ran = due + (np.asarray(late_ms) * 1e6).astype(np.int64)
     t = {c: np.zeros(n, np.int64) for c in TRACE_COLUMNS}
-    t.update(tick=np.arange(n), due_ns=due, woke_ns=ran.copy(), ran_ns=ran, work_end_ns=ran + 1000,
+    t.update(tick=np.arange(n), due_ns=due, slept_ns=due - period // 2, woke_ns=ran.copy(),
+             ran_ns=ran, work_end_ns=ran + 1000,
              published_ns=ran + 2000, wake=np.arange(n), cpu=np.zeros(n, np.int64))
     for name, inc in evidence.items():
         t[name] = np.cumsum(np.asarray(inc, np.int64))
@@ -193,8 +194,12 @@ def test_cause_is_the_measured_one_that_explains_the_lateness():
     t = _trace(base)
     t['woke_ns'][2] = t['due_ns'][2] + 100_000
     assert [e['cause'] for e in late_episodes(t, MS)] == ['gil']
-    # the previous wake's work ended 2.4 ms after this tick fell due
+    # the thread went to sleep 2.4 ms after this tick fell due (its previous wake's work)
     t = _trace(base)
+    t['slept_ns'][2] = t['due_ns'][2] + 2_400_000
+    assert [e['cause'] for e in late_episodes(t, MS)] == ['overrun']
+    # without the sleep time (-1), the previous wake's publication stands in for it
+    t['slept_ns'][:] = -1
     t['published_ns'][1] = t['due_ns'][2] + 2_400_000
     assert [e['cause'] for e in late_episodes(t, MS)] == ['overrun']
     # a 2.3 ms collection over the episode

@@ -585,7 +585,7 @@ class NodeLoop:
         self.deadline_ns = due_ns
         tr = self.trace
         if tr is not None:
-            tr.begin_wake(woke_ns, ran_ns)
+            tr.begin_wake(woke_ns, ran_ns, self.loop.slept_ns)
         try:
             self.on_wake(ran_ns)
         except Exception as exc:

@@ -211,7 +211,19 @@ class ServovalvePlant(Node):
         self.events = EventChannel(self, period_ns)
         self.add_on_set_parameters_callback(validator(self._on_set))
         self.state_pub = advertise(self, ActuatorState, TOPIC_STATE)
-        command_sub = subscribe(self, ServovalveCommand, TOPIC_SERVOVALVE, self._on_command)
+        self._command_node = None
+        if self.mode == 'realtime':
+            # read by the tick loop itself (take), on a node that no executor spins: the
+            # executor's thread would otherwise take the GIL for every command, 1 kHz of
+            # hand-overs with the loop's thread
+            self._command_node = Node(self.get_name() + '_commands', context=self.context,
+                                      start_parameter_services=False)
+            command_sub = subscribe(self._command_node, ServovalveCommand, TOPIC_SERVOVALVE,
+                                    lambda msg: None)
+            self._command_handle = command_sub.handle
+        else:
+            command_sub = subscribe(self, ServovalveCommand, TOPIC_SERVOVALVE,
+                                    self._on_command)
         self.current_a = 0.0
         self.done = False
         self.diverged = False
@@ -499,10 +511,25 @@ class ServovalvePlant(Node):
         """Wall-clock time [ns] that realtime ticks fall due on (the steady clock)."""
         return self._steady.now().nanoseconds
 
+    def _take_commands(self) -> None:
+        """Realtime: every current command that arrived since the last wake, the latest
+        kept."""
+        handle = self._command_handle
+        while True:
+            with handle:
+                taken = handle.take_message(ServovalveCommand, False)
+            if taken is None:
+                return
+            self.current_a = taken[0].current_command_a
+            self._fresh, self._unanswered_since = True, None
+
     def _on_loop_wake(self, now: int):
-        """The tick loop woke (its thread, the lock held): run the ticks due by ``now``."""
+        """The tick loop woke (its thread, the lock held): take the commands that arrived,
+        run the ticks due by ``now``."""
         began = time.monotonic_ns()
         try:
+            if self._started:
+                self._take_commands()
             self._catch_up(now)
         finally:
             self.timing.busy(began)
@@ -541,11 +568,8 @@ class ServovalvePlant(Node):
             self.timing.tick(now, now - due)
 
     def _on_command(self, msg: ServovalveCommand):
-        if self.mode == 'realtime':
-            with self._lock:
-                self.current_a = msg.current_command_a
-                self._fresh, self._unanswered_since = True, None
-            return
+        """Lockstep: the answer to the tick waiting advances it (realtime commands are taken
+        by the tick loop, :meth:`_take_commands`)."""
         if stamp_to_ns(msg.header.stamp) != self.plant.time_ns:
             return  # an answer to a tick already advanced (a re-sent tick)
         self.current_a = msg.current_command_a
@@ -590,9 +614,12 @@ class ServovalvePlant(Node):
             self._publish_tick()
 
     def close(self) -> None:
-        """Stop the tick loop (and write its timing trace)."""
+        """Stop the tick loop (and write its timing trace), then its command reader."""
         if self.rt_loop is not None:
             self.rt_loop.close()
+        if self._command_node is not None:
+            self._command_node.destroy_node()
+            self._command_node = None
 
 
 class _NoLock:
