@@ -260,9 +260,10 @@ class TickTrace:
 
 class TickLoop:
     """Call ``tick(due_ns, woke_ns, ran_ns)`` in a thread of its own at ``due_ns = anchor_ns +
-    k * period_ns`` (``time.monotonic_ns``), k = 0, 1, ...; a call that returns after the next
-    deadline makes the loop skip to the first deadline still ahead (the node catches up the
-    ticks that fell due, by its own rules).
+    k * period_ns`` (``time.monotonic_ns``), k = 0, 1, ...; after a call the next deadline is the
+    first one after the call's ``ran_ns`` (the node runs every tick due by then, by its own
+    catch-up rules): a deadline that passed during the call's work wakes the loop at once, and
+    only deadlines already passed when the call began are skipped.
 
     ``priority``: ``SCHED_FIFO`` priority of the loop thread only (0: the scheduling of the
     thread that starts it).  What the OS refuses is one warning line in :attr:`warnings`,
@@ -324,7 +325,10 @@ class TickLoop:
                     break
                 with self.lock:
                     self.tick(anchor + k * period, woke, ran)
-                k = max(k + 1, (now() - anchor) // period + 1)
+                # the next deadline: the first one after ``ran`` (the node ran every tick due
+                # by then); one that fell due during this wake's work is in the past, so the
+                # next wake comes at once instead of a period later
+                k = max(k + 1, (ran - anchor) // period + 1)
         except BaseException as e:  # reported by the node, not lost in a thread
             self.error = e
 
