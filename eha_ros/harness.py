@@ -493,16 +493,11 @@ class _Collector:
         if not force and now - self._last_poll < self.POLL_S:
             return
         self._last_poll = now
+        from eha_ros.nodes.common import take_waiting
         # receipt times: the middleware's (system clock), on the monotonic clock
         offset_ns = time.time_ns() - time.monotonic_ns()
         for sub, cls, counter, callback in self._subs:
-            handle = sub.handle
-            while True:
-                with handle:
-                    taken = handle.take_message(cls, False)
-                if taken is None:
-                    break
-                msg, info = taken
+            for msg, info in take_waiting(sub, cls):
                 gid = info.get('publisher_gid')
                 counter.add(info.get('publication_sequence_number'),
                             bytes(gid['data']) if gid else None)

@@ -27,7 +27,7 @@ __all__ = ['TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOPIC_HEALTH',
            'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'QOS', 'MODES', 'declare', 'declare_physics',
            'run_node', 'stamp_to_ns', 'ns_to_stamp', 'TickTiming', 'TIMING_SUFFIX',
            'refuse_undeclared', 'undeclared_message', 'declare_realtime', 'declare_loop',
-           'NodeLoop', 'refuse_loop_options',
+           'NodeLoop', 'refuse_loop_options', 'take_waiting',
            'apply_realtime_settings', 'begin_timing', 'EventChannel']
 
 #: Every graph topic (names and QoS from :mod:`eha_ros.graph`): reliable, last 1000
@@ -49,6 +49,19 @@ def advertise(node: Node, msg_type, topic: str):
     from rclpy.event_handler import PublisherEventCallbacks
     return node.create_publisher(
         msg_type, topic, QOS, event_callbacks=PublisherEventCallbacks(use_default_callbacks=False))
+
+
+def take_waiting(subscription, msg_type):
+    """Every message waiting on ``subscription`` (one no executor spins), oldest first, as
+    ``(message, info)``: rclpy's ``take`` with the message info (sequence number, receipt
+    time), without an executor pass or a callback per message."""
+    handle = subscription.handle
+    while True:
+        with handle:
+            taken = handle.take_message(msg_type, False)
+        if taken is None:
+            return
+        yield taken
 
 
 def stamp_to_ns(stamp) -> int:

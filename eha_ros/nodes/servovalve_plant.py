@@ -93,7 +93,8 @@ from eha_ros.watchdog import SAFE_ACTIONS, TickWatchdog
 from .common import (advertise, apply_realtime_settings, begin_timing, declare,
                      declare_loop, declare_physics, declare_realtime, EventChannel, MODES,
                      NodeLoop, ns_to_stamp, refuse_loop_options, run_node, stamp_to_ns,
-                     subscribe, TickTiming, TOPIC_CLOCK, TOPIC_SERVOVALVE, TOPIC_STATE, validator)
+                     subscribe, take_waiting, TickTiming, TOPIC_CLOCK, TOPIC_SERVOVALVE,
+                     TOPIC_STATE, validator)
 from .handshake import StartCoordinator
 
 #: The status of each operating condition (:func:`eha_ros.physics.state.operating_condition`).
@@ -220,7 +221,7 @@ class ServovalvePlant(Node):
                                       start_parameter_services=False)
             command_sub = subscribe(self._command_node, ServovalveCommand, TOPIC_SERVOVALVE,
                                     lambda msg: None)
-            self._command_handle = command_sub.handle
+            self._command_sub = command_sub
         else:
             command_sub = subscribe(self, ServovalveCommand, TOPIC_SERVOVALVE,
                                     self._on_command)
@@ -514,13 +515,8 @@ class ServovalvePlant(Node):
     def _take_commands(self) -> None:
         """Realtime: every current command that arrived since the last wake, the latest
         kept."""
-        handle = self._command_handle
-        while True:
-            with handle:
-                taken = handle.take_message(ServovalveCommand, False)
-            if taken is None:
-                return
-            self.current_a = taken[0].current_command_a
+        for msg, _ in take_waiting(self._command_sub, ServovalveCommand):
+            self.current_a = msg.current_command_a
             self._fresh, self._unanswered_since = True, None
 
     def _on_loop_wake(self, now: int):
