@@ -13,6 +13,9 @@ the spool position) is listed with effect 0 and the reason (``not_in_model``).
 Every case runs through the sweep engine (``eha_ros.sweep``), one Morris design per test
 (``--trajectories`` trajectories of ``k + 1`` points on a 4-level grid, seeded).
 
+Then Sobol indices (:func:`sobol`) of the few parameters that matter: the
+``--sobol-factors`` largest by Morris, over their ranges, the rest nominal.
+
 Beside it, one at a time: each factor alone at either end of its range, every other parameter
 nominal (the nominal valve's own deviation as the unit), and whether an end is flagged as a
 mismatch.
@@ -34,7 +37,8 @@ Writes ``screening.json`` (the figures), ``screening.md`` (the table), ``screeni
 ``--out`` (default ``docs/screening``), and prints the JSON.
 
     python bench/sensitivity.py [--tests valve_test,preflight] [--trajectories 8]
-        [--workers 2] [--seed 2027] [--out docs/screening] [--smoke]
+        [--workers 2] [--seed 2027] [--sobol-factors 6] [--sobol-n 64]
+        [--out docs/screening] [--smoke]
 
 ``--smoke``: two trajectories of the pre-flight check over six factors (one of each kind), in
 process, written to a temporary folder: a check that the bench runs, no figure.
@@ -248,6 +252,51 @@ def one_at_a_time(test: str, workers: int, smoke: bool = False) -> dict:
     return out
 
 
+def sobol(test: str, morris: dict, n: int, seed: int, workers: int, top: int,
+          smoke: bool = False) -> dict:
+    """First-order and total Sobol indices (SALib; Saltelli's scheme, no second order) of the
+    ``top`` factors with the largest Morris effects on the test's estimates, over their
+    ranges, every other parameter nominal and the noise seed 0 (the yardstick is no factor
+    here): the few that matter, apportioned.  Per estimate: ``S1`` and ``ST`` with their 95 %
+    half-widths, and the estimate's standard deviation over the design in units of its median
+    stated deviation (``std_sigma``, on the cases not flagged as a mismatch): how much the
+    few parameters move it together.  ``n`` (a power of two) base samples give
+    ``n (top + 2)`` cases."""
+    from SALib.analyze import sobol as sobol_analyze
+    from SALib.sample import sobol as sobol_sample
+    t0 = time.perf_counter()
+    by_name = {f[0]: f for f in factors(test, smoke)}
+    ranked = [name for name in morris['largest_effect_sigma'] if name in by_name
+              and by_name[name][1] != 'seed' and name not in morris['not_in_model']]
+    fs = [by_name[name] for name in ranked[:top]]
+    problem = {'num_vars': len(fs), 'names': [f[0] for f in fs],
+               'bounds': [[0.0, 1.0]] * len(fs)}
+    x = sobol_sample.sample(problem, n, calc_second_order=False, seed=seed)
+    bench = load_bench()
+    rows = run_design(test, [case_of(fs, u, bench) for u in x], workers)
+    ok = [r['status'] == 'ok' for r in rows]
+    out = {'factors': problem['names'], 'base_samples': n, 'cases': len(rows),
+           'cases_failed': int(len(rows) - sum(ok)),
+           'mismatch_share': round(float(np.mean([bool(r['mismatch']) for r, o in
+                                                  zip(rows, ok) if o])), 3)
+           if any(ok) else None, 'estimates': {}}
+    if not all(ok):   # the indices need every case: said, not filled in
+        out['not_analysed'] = (f'{out["cases_failed"]} of {len(rows)} cases did not run, '
+                               f'first: {next(r["error"] for r in rows if r["status"] != "ok")}')
+        return out
+    assessed = [r for r in rows if not r['mismatch']]
+    for est, std, param, _ in TESTS[test]:
+        y = np.array([r[est] for r in rows], dtype=float)
+        s_ref = float(np.median([r[std] for r in (assessed if len(assessed) >= 5 else rows)]))
+        res = sobol_analyze.analyze(problem, y, calc_second_order=False, seed=seed)
+        out['estimates'][param] = {
+            'std_sigma': round(float(np.std(y)) / s_ref, 4),
+            **{key: {name: round(float(v), 4) for name, v in zip(problem['names'], res[key])}
+               for key in ('S1', 'S1_conf', 'ST', 'ST_conf')}}
+    out['wall_s'] = round(time.perf_counter() - t0, 1)
+    return out
+
+
 def classify(result: dict) -> dict:
     """``{parameter: (largest effect over the tests, Morris and one at a time, class by the
     rule)}`` of the drawn parameters, with the class ``config/tolerances.yaml`` gives them."""
@@ -296,6 +345,23 @@ def write_report(result: dict, folder: Path) -> None:
             alone = r.get('one_at_a_time', {}).get('largest', {}).get(n)
             cells.append('-' if alone is None else f'{alone:.3g}')
         lines.append(f'| `{n}` | {klass} | ' + ' | '.join(cells) + ' |')
+    for t in tests:
+        sb = result['tests'][t].get('sobol')
+        if not sb:
+            continue
+        lines += ['', f'## Sobol indices, {t}', '',
+                  f'{sb["cases"]} cases ({sb["base_samples"]} base samples), the '
+                  f'{len(sb["factors"])} parameters with the largest Morris effects over '
+                  'their ranges, the rest nominal. Per estimate: its spread over the design '
+                  'in stated sigma, then first-order / total index of each parameter.', '']
+        if 'not_analysed' in sb:
+            lines.append(f'Not analysed: {sb["not_analysed"]}.')
+            continue
+        lines += ['| estimate | spread [sigma] | ' + ' | '.join(f'`{n}`' for n in sb['factors'])
+                  + ' |', '| --- | ---: | ' + ' | '.join('---:' for _ in sb['factors']) + ' |']
+        for param, e in sb['estimates'].items():
+            lines.append(f'| `{param}` | {e["std_sigma"]:.3g} | ' + ' | '.join(
+                f'{e["S1"][n]:.2f} / {e["ST"][n]:.2f}' for n in sb['factors']) + ' |')
     (folder / 'screening.md').write_text('\n'.join(lines) + '\n')
     import matplotlib
     matplotlib.use('Agg')
@@ -323,6 +389,10 @@ def main(argv=None) -> int:
     ap.add_argument('--workers', type=int, default=2, help='sweep workers (1: in process)')
     ap.add_argument('--seed', type=int, default=2027)
     ap.add_argument('--out', type=Path, default=None, help='report folder (docs/screening)')
+    ap.add_argument('--sobol-factors', type=int, default=6,
+                    help='Sobol indices of this many factors, the largest by Morris (0: none)')
+    ap.add_argument('--sobol-n', type=int, default=64,
+                    help='Sobol base samples, a power of two: n (factors + 2) cases a test')
     ap.add_argument('--smoke', action='store_true', help='a tiny design: a check, no figure')
     args = ap.parse_args(argv)
     tests = [t for t in args.tests.split(',') if t]
@@ -331,9 +401,13 @@ def main(argv=None) -> int:
         ap.error(f'--tests: unknown {", ".join(unknown) or "(none)"}; known: {", ".join(TESTS)}')
     if args.trajectories < 2 or args.workers < 1:
         ap.error('--trajectories must be at least 2 and --workers at least 1')
+    if args.sobol_factors < 0 or args.sobol_n < 2 or args.sobol_n & (args.sobol_n - 1):
+        ap.error(f'--sobol-factors {args.sobol_factors} must be at least 0 and --sobol-n '
+                 f'{args.sobol_n} a power of two')
     scratch = None
     if args.smoke:
         tests, args.trajectories, args.workers = ['preflight'], 2, 1
+        args.sobol_factors, args.sobol_n = min(args.sobol_factors, 2), 4
         if args.out is None:
             args.out = Path(scratch := tempfile.mkdtemp(prefix='eha-screening-'))
     out = args.out or Path('docs/screening')
@@ -346,6 +420,10 @@ def main(argv=None) -> int:
             result['tests'][t] = screen(t, args.trajectories, args.seed, args.workers, out,
                                         args.smoke)
             result['tests'][t]['one_at_a_time'] = one_at_a_time(t, args.workers, args.smoke)
+            if args.sobol_factors:
+                result['tests'][t]['sobol'] = sobol(t, result['tests'][t], args.sobol_n,
+                                                    args.seed, args.workers,
+                                                    args.sobol_factors, args.smoke)
         result['classification'] = classify(result)
         result['load_after'] = [round(v, 2) for v in os.getloadavg()]
         write_report(result, out)

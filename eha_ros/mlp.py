@@ -9,7 +9,8 @@ import numpy as np
 
 from eha_ros.artefacts import ArtefactError
 
-__all__ = ['split_weights', 'flatten_weights', 'quintic', 'NUMPY_ACTIVATIONS', 'mlp_forward']
+__all__ = ['split_weights', 'flatten_weights', 'quintic', 'silu', 'NUMPY_ACTIVATIONS',
+           'mlp_forward']
 
 
 def split_weights(theta, sizes) -> list:
@@ -43,8 +44,17 @@ def flatten_weights(weights) -> np.ndarray:
     return np.concatenate([np.concatenate([w.ravel(), b]) for w, b in weights])
 
 
+def silu(z):
+    """The ``silu`` hidden activation ``z / (1 + exp(-z))`` (torch's ``SiLU``), the logistic
+    written from ``exp(-|z|)`` so that it neither overflows nor cancels: unbounded, so a
+    network of it extrapolates about linearly beyond its training data."""
+    z = np.asarray(z, dtype=float)
+    e = np.exp(-np.abs(z))
+    return z * np.where(z >= 0.0, 1.0 / (1.0 + e), e / (1.0 + e))
+
+
 #: Hidden activations of :func:`mlp_forward` by name.
-NUMPY_ACTIVATIONS = {'tanh': np.tanh, 'quintic': quintic}
+NUMPY_ACTIVATIONS = {'tanh': np.tanh, 'quintic': quintic, 'silu': silu}
 
 
 def mlp_forward(weights, h, activation: str = 'tanh'):

@@ -19,7 +19,7 @@ from eha_ros.training.preflight import case_params, cases
 
 P = default_params()
 #: Streams no build or benchmark set uses (those: 21-24 and 41-45).
-STREAM_TEST, STREAM_FLEET_TEST = 51, 52
+STREAM_TEST, STREAM_FLEET_TEST, STREAM_BEYOND_TEST = 51, 52, 53
 
 
 @pytest.fixture(scope='module')
@@ -82,6 +82,35 @@ def test_a_halved_bulk_modulus_is_refused(model):
     assert 'OOD score' in e.mismatch and e.ood_score > e.ood_limit
     for f in FAULTS:
         assert e.stds[f.name] >= _prior_std(f) * (1 - 1e-12)
+
+
+def test_halved_bulk_moduli_are_refused_on_fresh_draws(model):
+    """12 drifted cases of a stream used for nothing else, each with half the nominal bulk
+    modulus: at least 10 are refused (the goal of 0.95 less two binomial standard errors of a
+    12-case fraction, 0.82), and a case left unrefused holds every truth within 2 sigma."""
+    refused = 0
+    for wear, seed in cases(12, STREAM_BEYOND_TEST, inner=True):
+        p = replace(case_params((wear, seed)), bulk_modulus_pa=0.5 * P.bulk_modulus_pa)
+        e = model.estimate(run_preflight(p, seed=seed), mean_conditions(
+            measure_conditions(p, seed, CONDITION_READINGS)))
+        refused += bool(e.mismatch)
+        if not e.mismatch:
+            for k in FAULT_NAMES:
+                assert abs(e.values[k] - wear[k]) <= 2 * e.stds[k], (seed, k)
+    assert refused >= 10, refused
+
+
+def test_the_ood_network_runs_as_it_was_trained(model):
+    """The envelope network is in the artefact, and its numpy activation is torch's SiLU."""
+    import torch
+    from eha_ros.mlp import silu
+    net = model.meta['ood']['net']
+    assert net['activation'] == 'silu' and model.ood.net is not None
+    assert [w.shape[1] for w, _ in model.ood.net.weights[:-1]] == net['hidden']
+    z = np.linspace(-60.0, 60.0, 2001)
+    np.testing.assert_allclose(silu(z), torch.nn.functional.silu(
+        torch.as_tensor(z, dtype=torch.float64)).numpy(), rtol=1e-12, atol=1e-15)
+    assert np.all(np.isfinite(model.ood.net.score(np.full((1, model.in_mean.size), 1e3))))
 
 
 @pytest.mark.parametrize('fleet', [False, True], ids=['drift', 'fleet'])

@@ -29,7 +29,8 @@ from .valve import (edge_constants, fluid_constants, net_flow, steady_pressures,
                     steady_pressures_rtol, valve_coefficients)
 
 __all__ = ['WEAR_RANGES', 'FLUID_PARAMETERS', 'FLOW_MAX_M3_S', 'fluid_hash', 'spool_grid',
-           'transient_map', 'transient_trace', 'steady_map', 'MapResult', 'settling_mask']
+           'transient_map', 'transient_trace', 'stepped_trace', 'steady_map', 'MapResult',
+           'settling_mask']
 
 _BLOCK = 64
 
@@ -167,17 +168,23 @@ def transient_map(xs_m, q_m3_s, overlap_m=None, clearance_m=None, params=None,
 
 
 def transient_trace(xs_m, q_m3_s, n_ticks: int, steps_per_tick: int, params=None,
-                    dt_s: float = 1e-6, first: int = 0) -> tuple:
+                    dt_s: float = 1e-6, first: int = 0, start_pa=None) -> tuple:
     """``(p1_pa, p2_pa)`` of the map transient at the end of ticks ``first .. n_ticks - 1``
     of ``steps_per_tick`` steps each, arrays ``(n_ticks - first,) + shape`` for broadcastable
     ``xs_m`` and ``q_m3_s``: row ``m - first`` equals :func:`transient_map` with
     ``t_end_s = (m + 1) steps_per_tick dt_s`` bit for bit (the first ``first`` ticks run as
-    one chunk), at the cost of one transient."""
+    one chunk), at the cost of one transient.  ``start_pa``: ``(p1, p2)`` chamber pressures
+    [Pa] the transient starts from, broadcast to the points (default zero, the map's)."""
     p = params if params is not None else default_params()
     shape, (xs, q, lap, clr) = _broadcast(xs_m, q_m3_s, None, None, p)
     consts = _consts(p)
     n = xs.size
     raw1, raw2 = np.zeros(n), np.zeros(n)
+    if start_pa is not None:
+        for raw, v in zip((raw1, raw2), start_pa):
+            raw[:] = np.broadcast_to(np.asarray(v, dtype=float), shape).ravel()
+        if not (np.all(np.isfinite(raw1)) and np.all(np.isfinite(raw2))):
+            raise ValueError('the start pressures of a map transient must be finite')
     o1, o2 = np.empty(n), np.empty(n)
     p1, p2 = np.empty((n_ticks - first, n)), np.empty((n_ticks - first, n))
     if first:
@@ -190,6 +197,29 @@ def transient_trace(xs_m, q_m3_s, n_ticks: int, steps_per_tick: int, params=None
     if not (np.all(np.isfinite(p1)) and np.all(np.isfinite(p2))):
         raise FloatingPointError('map transient diverged: reduce dt_s')
     return (p1.reshape((n_ticks - first,) + shape), p2.reshape((n_ticks - first,) + shape))
+
+
+def stepped_trace(xs_m, q_m3_s: float, n_ticks: int, steps_per_tick: int, params=None,
+                  dt_s: float = 1e-6, first: int = 0, start_pa=(0.0, 0.0)) -> tuple:
+    """``(p1_pa, p2_pa)``, arrays ``(n_ticks - first, len(xs_m))``, of a curve stepped point
+    by point in the order of ``xs_m`` at one imposed flow, ``n_ticks`` ticks per point, as a
+    bench steps the spool: each point's transient starts from the chamber pressures the one
+    before ended at (the first from ``start_pa``, default zero).  Column ``j`` equals
+    :func:`transient_trace` of point ``j`` started from the last row of column ``j - 1``
+    bit for bit, so a plant that runs the points one at a time reads the same samples.
+
+    From zero, the near-null points of a valve with little leakage take seconds to fill both
+    chambers through the clearance; from their neighbour's pressures they settle within the
+    hold (:data:`eha_ros.physics.maintenance.SETTLED_HOLD_S`)."""
+    xs = np.asarray(xs_m, dtype=float).ravel()
+    p1 = np.empty((n_ticks - first, xs.size))
+    p2 = np.empty((n_ticks - first, xs.size))
+    start = start_pa
+    for j, x in enumerate(xs):
+        a, b = transient_trace(x, q_m3_s, n_ticks, steps_per_tick, params, dt_s, first, start)
+        p1[:, j], p2[:, j] = a, b
+        start = (float(a[-1]), float(b[-1]))
+    return p1, p2
 
 
 @njit(cache=True, parallel=True)

@@ -481,7 +481,7 @@ class ValveTestProcedure(Procedure):
         from eha_ros.health.valve_test import ValveTestEstimator
         from eha_ros.physics import default_params
         from eha_ros.physics.bench import load_bench, mean_conditions, measure_conditions
-        from eha_ros.physics.maps import spool_grid, transient_map, transient_trace
+        from eha_ros.physics.maps import spool_grid, stepped_trace, transient_map
         (c,) = point.cases
         t0 = time.perf_counter()
         row = {'case_id': c.case_id, 'model': c.model, 'dt_s': c.dt_s}
@@ -505,8 +505,8 @@ class ValveTestProcedure(Procedure):
                 # the reading is the last window's mean, the settle check the one before
                 n_hold = int(round(sch['hold_s'] / 1e-3))
                 n_win = int(round(READING_S / 1e-3))
-                p1, p2 = transient_trace(grid, q, n_hold, int(round(1e-3 / c.dt_s)), p,
-                                         c.dt_s, first=n_hold - 2 * n_win)
+                p1, p2 = stepped_trace(grid, q, n_hold, int(round(1e-3 / c.dt_s)), p,
+                                       c.dt_s, first=n_hold - 2 * n_win)
                 p12 = p1 - p2
                 if self.spec.pressure_noise:
                     p12 = p12 * (1.0 + self.spec.pressure_noise * rng.standard_normal(

@@ -50,6 +50,7 @@ checks gave filter clogging 6.8 / 6.1 / 5.5 / 4.9 / 4.6 % of range.
 from __future__ import annotations
 
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -57,7 +58,9 @@ import numpy as np
 
 from eha_ros.artefacts import models_dir, save_artefact
 from eha_ros.health.preflight import (CONDITION_READINGS, FAULT_NAMES, FAULTS, FAULTS_FILE,
-                                      N_INPUTS, RING_COLUMNS, FaultModel, OodModel, Subspace)
+                                      N_INPUTS, RING_COLUMNS, FaultModel, NetEnvelope,
+                                      OodModel, Subspace, load_faults)
+from eha_ros.mlp import mlp_forward
 from eha_ros.physics import PlantParams, default_params
 from eha_ros.physics.bench import (CONDITIONS, load_bench, mean_conditions,
                                    measure_conditions)
@@ -93,7 +96,11 @@ FAULT_SETTINGS = {
     'ood_subspaces': [[0, N_INPUTS, 0.99], list(RING_COLUMNS) + [0.9999]],
     'ood_quantile': 0.995, 'ood_margin': 1.25,
     'ridge_lambdas': [0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0], 'fleet': True,
+    'ood_net': {'hidden': [256, 256], 'epochs': 40, 'batch': 256, 'lr': 1e-3,
+                'weight_decay': 1e-5, 'seed': 31},
 }
+#: Settings the OOD model alone depends on: ``--ood-only`` may change them on a built network.
+OOD_SETTINGS = ('ood_subspaces', 'ood_quantile', 'ood_margin', 'ridge_lambdas', 'ood_net')
 
 
 def draw_wear(rng: np.random.Generator, sparse: bool, p_degrade: float = 0.3) -> dict:
@@ -433,6 +440,36 @@ def _fit_subspace(z, start: int, stop: int, variance: float) -> Subspace:
     return Subspace(start, stop, basis, np.maximum(w[:k], 1e-12), float(np.mean(r2)))
 
 
+def _train_envelope_net(z, u, s: dict, threads: int = 2) -> list:
+    """The :class:`~eha_ros.health.preflight.NetEnvelope` network: an MLP (``silu``) from
+    the standardised inputs ``z`` to the normalised parameters ``u``, Adam on mean squared
+    error with cosine decay (settings ``ood_net``); weights as float64 ``[(W, b), ...]``."""
+    import torch
+    torch.set_num_threads(threads)
+    torch.manual_seed(int(s['seed']))
+    layers, d = [], z.shape[1]
+    for h in s['hidden']:
+        layers += [torch.nn.Linear(d, h), torch.nn.SiLU()]
+        d = h
+    layers.append(torch.nn.Linear(d, u.shape[1]))
+    net = torch.nn.Sequential(*layers).float()
+    zt = torch.as_tensor(z, dtype=torch.float32)
+    ut = torch.as_tensor(u, dtype=torch.float32)
+    opt = torch.optim.Adam(net.parameters(), lr=s['lr'], weight_decay=s['weight_decay'])
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, int(s['epochs']))
+    bs = int(s['batch'])
+    for _ in range(int(s['epochs'])):
+        order = torch.randperm(len(zt))
+        for j in range(0, len(zt), bs):
+            idx = order[j:j + bs]
+            opt.zero_grad()
+            ((net(zt[idx]) - ut[idx]) ** 2).mean().backward()
+            opt.step()
+        sched.step()
+    return [(m.weight.detach().double().numpy().T.copy(), m.bias.detach().double().numpy().copy())
+            for m in net if isinstance(m, torch.nn.Linear)]
+
+
 def fit_ood(model: FaultModel, x, u, xv, uv, x_limit, settings: dict | None = None
             ) -> FaultModel:
     """The OOD model (:class:`~eha_ros.health.preflight.OodModel`) from the training inputs
@@ -471,6 +508,16 @@ def fit_ood(model: FaultModel, x, u, xv, uv, x_limit, settings: dict | None = No
         tests.append({'columns': [t.start, t.stop], 'explained_variance': var,
                       'components': int(len(t.variances)), 'residual_ms': t.residual_ms,
                       'scale': t.scale})
+    net_meta = None
+    if s.get('ood_net'):   # the same envelope, estimated by a network
+        weights = _train_envelope_net(z, u, s['ood_net'])
+        err = np.abs(mlp_forward(weights, zv, 'silu') - uv)
+        ood.net = NetEnvelope(weights, np.quantile(err, 0.99, axis=0))
+        ood.net.scale = ood.limit / float(np.quantile(ood.net.score(zl), s['ood_quantile'])
+                                          * s['ood_margin'])
+        net_meta = dict(s['ood_net'], activation='silu', scale=ood.net.scale,
+                        sigma=dict(zip(names, np.round(np.std(
+                            mlp_forward(weights, zv, 'silu') - uv, axis=0), 4).tolist())))
     model.ood = ood
     held = ood.score(zl)
     model.meta['ood'] = {
@@ -482,6 +529,8 @@ def fit_ood(model: FaultModel, x, u, xv, uv, x_limit, settings: dict | None = No
         'held_out_score_quantiles': {str(q): round(float(np.quantile(held, q)), 3)
                                      for q in (0.5, 0.9, 0.99, 0.995, 1.0)},
         'held_out_flagged': round(float(np.mean(held > ood.limit)), 4)}
+    if net_meta:
+        model.meta['ood']['net'] = net_meta
     return model
 
 
@@ -541,6 +590,36 @@ def build_artefact(out: Path | None = None, settings: dict | None = None, worker
     return model
 
 
+def refit_ood(data: Path | None = None, out: Path | None = None, settings: dict | None = None,
+              workers: int = 2, progress=print) -> FaultModel:
+    """Fit the OOD model of the shipped network again, on the data of its build (``data``:
+    the build's sweeps, read where present; the rest run), and save it with the members and
+    the calibration unchanged.  Refused when the network was built with other settings than
+    these (:data:`OOD_SETTINGS` may differ)."""
+    import copy
+    s = dict(FAULT_SETTINGS, **(settings or {}))
+    model = copy.copy(load_faults())
+    model.meta = copy.deepcopy(model.meta)
+    built = model.meta.get('settings', {})
+    other = sorted(k for k in set(s) | set(built) if k not in OOD_SETTINGS
+                   and built.get(k) != s.get(k))
+    if other:
+        raise ValueError(f'pre-flight OOD refit: the shipped network was built with other '
+                         f'settings ({", ".join(other)}): rebuild it whole')
+    p = default_params()
+    sets = data_sets(s)
+    d = generate_sets(sets, p, workers, progress, data)
+    fl = bool(s['fleet'])
+    fit_ood(model, d['train'][0], envelope_targets(sets['train'], fleet=fl), d['val'][0],
+            envelope_targets(sets['val'], fleet=fl), d['ood'][0], s)
+    model.meta['settings'] = s
+    out = Path(out) if out is not None else models_dir('health') / FAULTS_FILE
+    save_artefact(out, model.data(), model.meta)
+    progress(f'{out}: OOD model refitted, limit {model.ood.limit:.3g}, held-out flagged '
+             f'{model.meta["ood"]["held_out_flagged"]}')
+    return model
+
+
 def main(argv=None) -> int:
     import argparse
     ap = argparse.ArgumentParser(prog='python -m eha_ros.training.preflight',
@@ -548,9 +627,18 @@ def main(argv=None) -> int:
     ap.add_argument('--workers', type=int, default=2, help='sweep workers (1: in process)')
     ap.add_argument('--data', type=Path, default=None,
                     help='keep the data sweeps here (resumed if they hold some of it)')
+    ap.add_argument('--ood-only', action='store_true',
+                    help='fit only the OOD model of the shipped network again (on --data)')
     args = ap.parse_args(argv)
     if args.workers < 1:
         ap.error(f'--workers {args.workers} must be at least 1')
+    if args.ood_only:
+        try:
+            refit_ood(args.data, workers=args.workers)
+        except ValueError as exc:
+            print(f'error: {exc}', file=sys.stderr)
+            return 2
+        return 0
     build_artefact(workers=args.workers, data=args.data)
     return 0
 
