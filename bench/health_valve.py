@@ -19,7 +19,10 @@ read OK with a 2-sigma interval excluding the truth, mismatch flags (the referen
 residual beyond ``residual_error_pa``), and the confusion table of the true level against the
 reported one; on ``fleet``, the share of each estimate's mean square error that each drawn
 parameter explains (a linear fit on the fleet itself), and a control: the same fit on each
-unit's steady map (``steady_readings``: what the hold's unsettled readings cost).
+unit's steady map (``steady_readings``: what the hold's unsettled readings cost); on
+``clean``, the same control with the fit's laminar-factor prior centred on the nominal valve
+(``steady_readings_nominal_prior``: what the unobservable leakage gain costs a valve that
+is nominal in its tolerances).
 
     python bench/health_valve.py [--workers 2] [--quick] [--smoke] [--sets fleet,...]
 
@@ -155,12 +158,15 @@ def sets(size: str = 'full') -> dict:
     return out
 
 
-def steady_readings(table, cases, lim) -> dict:
+def steady_readings(table, cases, lim, laminar_prior=None) -> dict:
     """The control of the settled fleet set: the same valve fit, at the same measured
     conditions, on each unit's steady map (:func:`eha_ros.physics.maps.steady_map` of its
     true parameters: the readings a hold long enough to settle every point would give), in
     this process.  The difference to the set's figures is what the hold's unsettled
-    readings cost; ``fit_s``: the seconds each estimate took."""
+    readings cost; ``fit_s``: the seconds each estimate took.  ``laminar_prior``: the fit's
+    prior on the laminar factor (default the fleet's; the clean set's control centres it on
+    the nominal valve: what the unobservable leakage gain costs a valve that is nominal in its
+    tolerances)."""
     from eha_ros.health.valve_fit import ValveFitEstimator
     from eha_ros.physics import default_params
     from eha_ros.physics.bench import Conditions
@@ -169,7 +175,8 @@ def steady_readings(table, cases, lim) -> dict:
     from eha_ros.physics.params import replace
     import pyarrow as pa
     sch = valve_test_schedule('settled')
-    est = ValveFitEstimator(replace(default_params(), noise_std_a=0.0))
+    est = ValveFitEstimator(replace(default_params(), noise_std_a=0.0),
+                            laminar_prior=laminar_prior)
     rows, fit_s = [], []
     for k, c in enumerate(cases):
         p = replace(default_params(), **{n: v for n, v in c.items() if n != 'seed'})
@@ -199,7 +206,9 @@ def steady_readings(table, cases, lim) -> dict:
                   for n in cols})
     out = figures(t, cases, 'settled', lim)
     out.pop('confusion', None)
-    out['note'] = 'control: the fit on each unit\'s steady map, not a test a bench runs'
+    out['note'] = ('control: the fit on each unit\'s steady map, not a test a bench runs'
+                   + ('' if laminar_prior is None else
+                      f'; laminar prior (log10 mean, std) = {tuple(laminar_prior)}'))
     if fit_s:   # the valve fit's own cost, one estimate at a time in this process
         out['fit_s'] = {'mean': round(float(np.mean(fit_s)), 3),
                         'max': round(float(np.max(fit_s)), 3), 'n': len(fit_s)}
@@ -224,6 +233,10 @@ def valve_drift(workers: int = 2, size: str = 'full', progress=None, only=SETS) 
             out[name][procedure]['wall_s'] = round(time.perf_counter() - t, 1)
             if name == 'fleet' and procedure == 'settled':
                 out[name]['steady_readings'] = steady_readings(table, clean, lim)
+            if name == 'clean' and procedure == 'settled':
+                from eha_ros.health.valve_fit import unit_priors
+                out[name]['steady_readings_nominal_prior'] = steady_readings(
+                    table, clean, lim, (0.0, unit_priors()['laminar'][1]))
             if name == 'beyond':
                 mis = np.array(table.column('mismatch').to_pylist(), dtype=bool)
                 if procedure == 'reference':

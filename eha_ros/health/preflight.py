@@ -43,11 +43,12 @@ Unmeasured conditions (:attr:`FaultEstimate.note`)
     estimates (never below the deviation at the conditions given); the OOD score is the
     grid's smallest; ``note`` says so.
 
-Measured (``bench/health_preflight.py``, streams no build step used): on 240 drifted cases
-the mean error is 0.43-1.05 % of each range and 96-100 % of the cases lie within 2 sigma; no
-false alarm on 24 drifted nominal valves; of 48 cases beyond the envelope 44 are flagged (all
-with the supply pressure 15 % off, the fluid at 0 or 90 degC, Khsv = 0.4; 4 of 8 with the
-bulk modulus halved, whose unflagged estimates all held the truth within 2 sigma).
+Measured (``bench/health_preflight.py``, streams no build step used; figures in
+``docs/fleet/health_preflight.json``): on 400 checks of a drawn fleet the mean error is
+0.14-4.7 % of each range, 96-99.5 % lie within 2 sigma and 1.5 % are refused; no false
+alarm on 24 drifted nominal valves; of 48 cases beyond the envelope 46 are refused (all with
+the supply pressure 15 % off, the fluid at 0 or 90 degC, Khsv = 0.4; 6 of 8 with the bulk
+modulus halved, whose unrefused estimates all held the truth within 2 sigma).
 
 Data, training and calibration: :mod:`eha_ros.training.preflight`
 (``nice python -m eha_ros.training.preflight`` writes ``models/faults.npz``).  Inference is

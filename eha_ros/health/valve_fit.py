@@ -228,13 +228,15 @@ def _points(curves, cond: Conditions):
 
 
 def fit_curves(curves, cond: Conditions, base: PlantParams, bench=None,
-               supply_std_pa: float | None = None) -> dict:
+               supply_std_pa: float | None = None, laminar_prior=None) -> dict:
     """The weighted least-squares fit (module docstring): ``theta`` (clearance [um],
     overlap [um], the edges' flow coefficient kappa, log10 critical flow number, jack leakage
     [1e-13 m^3/(s Pa)], supply pressure less its reading [10 kPa], log10 laminar factor), its
     covariance, ``chi``, the RMS residual [Pa], the points used and the
     sensitivities of ``theta`` to the other measured conditions.  ``supply_std_pa``: the
-    prior deviation of the supply pressure about ``cond``'s (default: its sensor's)."""
+    prior deviation of the supply pressure about ``cond``'s (default: its sensor's);
+    ``laminar_prior``: (mean, std) of log10 of the laminar factor (default: the fleet's,
+    :func:`unit_priors`)."""
     from scipy.optimize import least_squares
     b = bench or load_bench()
     xs, q, p12, n_all, unsettled = _points(curves, cond)
@@ -245,7 +247,8 @@ def fit_curves(curves, cond: Conditions, base: PlantParams, bench=None,
     if supply_std_pa is None:   # the transducer's calibration error, uniform
         supply_std_pa = b.sensors['supply_pressure_pa'].bias / np.sqrt(3.0)
     s_ps = supply_std_pa / _SUPPLY_UNIT_PA
-    lam_mean, lam_std = unit_priors(base)['laminar']
+    lam_mean, lam_std = (unit_priors(base)['laminar'] if laminar_prior is None
+                         else (float(laminar_prior[0]), float(laminar_prior[1])))
     lam_std = max(lam_std, 1e-6)
 
     def resid(theta, c=cond):
@@ -298,15 +301,21 @@ class ValveFitEstimator:
     calibration : FitCalibration or None
         Default: the shipped one; ``None`` with ``uncalibrated=True``: factors 1 and no chi
         limit (used to build the calibration).
+    laminar_prior : (float, float) or None
+        Mean and standard deviation of log10 of the laminar factor (module docstring).
+        Default: the fleet's, from the tolerances (:func:`unit_priors`).  The shipped
+        calibration holds for the default; another prior is a control (what the fit reads
+        when the unit's leakage gain is known), not a calibrated estimate.
     """
 
     method = 'settled-valve-fit'
 
     def __init__(self, params: PlantParams | None = None, calibration='default',
-                 bench=None):
+                 bench=None, laminar_prior=None):
         self.params = params if params is not None else default_params()
         self.bench = bench or load_bench()
         self.calibration = load_calibration() if calibration == 'default' else calibration
+        self.laminar_prior = laminar_prior
 
     def condition_std(self) -> np.ndarray:
         """Standard deviation of each measured condition's error (uniform bias)."""
@@ -335,7 +344,8 @@ class ValveFitEstimator:
                          'unscaled, no residual limit')
         lo, hi = self.bench.service['supply_pressure_pa']
         f = fit_curves(curves, conditions, self.params, self.bench,
-                       (hi - lo) / np.sqrt(12.0) if conditions.assumed else None)
+                       (hi - lo) / np.sqrt(12.0) if conditions.assumed else None,
+                       self.laminar_prior)
         # reported: clearance, overlap, Khsv = 1 - kappa / (Cd w over nominal), leakage
         pick = [0, 1, 2, 4]
         edge_mean, edge_std = unit_priors(self.params)['edge']
