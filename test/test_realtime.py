@@ -17,6 +17,7 @@ import subprocess
 import sys
 import tempfile
 
+from hypothesis import given, strategies as st
 import pytest
 
 from eha_ros import realtime
@@ -287,3 +288,31 @@ def test_settle_gc_freezes_the_heap():
         assert count == gc.get_freeze_count() > 0
     finally:
         gc.unfreeze()
+
+
+# --- --rt with a harness pinned by hand ---------------------------------------------------------
+
+@given(st.sets(st.integers(0, 63), min_size=1, max_size=8), st.integers(1, 64))
+def test_rt_pinning_warning_names_a_single_cpu_of_several(cpus, total):
+    """Warned exactly when the process may use one CPU of a machine that has more; the line
+    names that CPU and the count."""
+    from eha_ros.harness import rt_pinning_warning
+    line = rt_pinning_warning(cpus, total)
+    if len(cpus) == 1 and total >= 2:
+        (cpu,) = cpus
+        assert f'CPU {cpu} alone of {total}' in line and '\n' not in line
+    else:
+        assert line is None
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason='needs two CPUs to pin onto one')
+def test_eha_graph_rt_pinned_to_one_cpu_warns_in_one_line(ros_env, tmp_path):
+    """``taskset -c N eha-graph --rt``: the run goes on and says, in one line, that the whole
+    graph shares CPU N (every node inherits the mask)."""
+    cpu = min(os.sched_getaffinity(0))
+    eha = os.path.join(os.path.dirname(sys.executable), 'eha-graph')
+    r = subprocess.run(['taskset', '-c', str(cpu), eha, '--mode', 'realtime', '--rt',
+                        '--duration', '0.2'], env=ros_env, cwd=tmp_path, text=True,
+                       capture_output=True, timeout=180)
+    lines = [x for x in r.stderr.splitlines() if f'pinned to CPU {cpu} alone' in x]
+    assert len(lines) == 1 and 'warning' in lines[0], r.stderr
