@@ -6,8 +6,9 @@ Cases: the reference's nine scenarios, ``step_1mm`` and ``step_0p3mm`` (large si
 every table and six drawn at random over the dynamic surrogates' range,
 :mod:`eha_ros.evaluation`).  Noise-free: errors, yardstick, bounds and features per case,
 every model, and hf and the dynamic surrogates again at each of ``--large-dts`` (2, 5 and
-10 us) against hf at 1 us, which gives ``largest_steps``: per model the largest step meeting
-the bounds in every case.  With noise
+10 us) against hf at 1 us, and by the split integrator at each of ``--split-dts`` (10, 20 and
+25 us; models ``hf@split``, ``dlut@split``, ...), which gives ``largest_steps``: per model and
+integrator the largest step meeting the bounds in every case.  With noise
 (nominal wear): ``--seeds`` seeds (20: the errors are heavy-tailed on small-signal holds, see
 :mod:`eha_ros.evaluation`) for ``--noise-models`` (default all but the reference's
 networks ``nn``, ``nn2``, which miss the noise-free bounds by far and cost 15-20x hf).
@@ -21,11 +22,12 @@ process; ``--data DIR`` keeps both datasets (and resumes them).
 
     nice python bench/inloop.py [--models dlut,dnn,dga,lut,ga,nn,nn2] [--seeds 20]
         [--noise-models dlut,dnn,dga,lut,ga] [--large-dts 2e-6,5e-6,1e-5]
+        [--split-dts 1e-5,2e-5,2.5e-5]
         [--scenarios a,b] [--no-noise] [--wear nominal|all] [--wear-points rand_6,...]
         [--jobs 2] [--data DIR] [--quiet] [--out FILE] [--smoke]
 
-``--smoke``: one short scenario at nominal wear for dlut and lut, two seeds, one larger step,
-in process: a check that the bench runs, no figure.
+``--smoke``: one short scenario at nominal wear for dlut and lut, two seeds, one larger step
+of each integrator, in process: a check that the bench runs, no figure.
 """
 
 import argparse
@@ -57,6 +59,9 @@ def main(argv=None):
     ap.add_argument('--no-noise', action='store_true')
     ap.add_argument('--large-dts', default='2e-6,5e-6,1e-5',
                     help='also run hf and the dynamic surrogates at these steps [s] ("": none)')
+    ap.add_argument('--split-dts', default='1e-5,2e-5,2.5e-5',
+                    help='also run hf and the dynamic surrogates by the split integrator at '
+                         'these steps [s] ("": none)')
     ap.add_argument('--jobs', type=int, default=1,
                     help='sweep workers (a LocalCluster; 1: in this process)')
     ap.add_argument('--data', default=None,
@@ -68,7 +73,7 @@ def main(argv=None):
     if args.smoke:
         args.models, args.scenarios, args.wear, args.seeds = 'dlut,lut', 'step_0p01', \
             'nominal', 2
-        args.large_dts, args.jobs, args.quiet = '5e-6', 1, True
+        args.large_dts, args.split_dts, args.jobs, args.quiet = '5e-6', '1e-5', 1, True
     t0 = time.perf_counter()
     models = [m for m in args.models.split(',') if m]
     unknown = [m for m in models if m not in MODELS or m == 'hf']
@@ -79,12 +84,18 @@ def main(argv=None):
     if args.jobs < 1:
         print(f'inloop: error: --jobs {args.jobs} must be at least 1', file=sys.stderr)
         return 2
-    try:
-        large_dts = [float(v) for v in args.large_dts.split(',') if v]
-    except ValueError:
-        print(f'inloop: error: --large-dts {args.large_dts!r} is not a list of steps [s]',
-              file=sys.stderr)
-        return 2
+    steps = {}
+    for opt in ('large_dts', 'split_dts'):
+        text = getattr(args, opt)
+        try:
+            steps[opt] = [float(v) for v in text.split(',') if v]
+        except ValueError:
+            steps[opt] = None
+        if steps[opt] is None or not all(v > 0 for v in steps[opt]):
+            print(f'inloop: error: --{opt.replace("_", "-")} {text!r} is not a list of '
+                  'positive steps [s]', file=sys.stderr)
+            return 2
+    large_dts = steps['large_dts']
     wear = WEAR_POINTS if args.wear == 'all' else {'nominal': None}
     if args.wear_points is not None:
         names = [w for w in args.wear_points.split(',') if w]
@@ -106,7 +117,7 @@ def main(argv=None):
         try:
             done = run_comparison(data, scenarios, wear, models, noise_models, args.seeds,
                                   large_dts, workers=args.jobs, in_process=args.jobs == 1,
-                                  progress=not args.quiet)
+                                  progress=not args.quiet, split_dts=steps['split_dts'])
         except (SpecError, SweepError) as exc:
             print(f'inloop: error: {exc}', file=sys.stderr)
             return 2

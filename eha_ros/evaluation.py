@@ -27,6 +27,11 @@ Larger steps (``large_dts``): the dynamic surrogates, and hf itself as the contr
 above 1 us against hf at 1 us with the same bounds, so the largest step at which a plant stays
 stable and accurate is measured, not assumed (:func:`largest_steps`).
 
+Integrators (``split_dts``): hf and the dynamic surrogates also by the ``split`` integrator
+(:func:`eha_ros.physics.loop.run`) at each of these steps, keys ``'<model>@split@dt=<step>'``,
+against the same hf at 1 us (explicit) with the same bounds; :func:`largest_steps` gives the
+largest step of each (model, integrator).
+
 Cost: wall seconds per simulated second of every run against hf's.
 """
 
@@ -37,6 +42,7 @@ import numpy as np
 from eha_ros.graph import DYNAMIC_MODELS
 from eha_ros.physics import simulate
 from eha_ros.physics.params import replace
+from eha_ros.physics.stability import EXPLICIT, SPLIT
 
 from eha_ros.surrogates.base import relative_error
 
@@ -91,10 +97,21 @@ def features(r) -> dict:
             'p12_peak_pa': float(np.max(np.abs(p12)))}
 
 
-def run(p, scenario, fluid=None, dt=DT_S, seed=0):
+def run(p, scenario, fluid=None, dt=DT_S, seed=0, integrator=EXPLICIT):
     """One closed-loop run as the comparison makes it (controller 1 kHz, every tick)."""
     return simulate(p, scenario, dt_s=dt, seed=seed, controller_period_s=CONTROLLER_PERIOD_S,
-                    record_dt_s=None, fluid=fluid)
+                    record_dt_s=None, fluid=fluid, integrator=integrator)
+
+
+def model_integrator(name: str) -> tuple:
+    """``(model, integrator)`` of a model name with an optional ``@split``: ``'hf@split'`` is
+    hf by the split integrator, ``'dlut'`` dlut by the explicit one."""
+    base, sep, integ = name.partition('@')
+    if not sep:
+        return name, EXPLICIT
+    if integ != SPLIT:
+        raise ValueError(f'model {name!r}: {integ!r} is not an integrator (only @{SPLIT})')
+    return base, SPLIT
 
 
 def _errors(r, ref) -> dict:
@@ -106,10 +123,11 @@ def _cost(r) -> float:
     return r.wall_time_s / float(r.t[-1])
 
 
-def noise_free(p, scenario, surrogates, large_dts=(), keep_runs=False):
+def noise_free(p, scenario, surrogates, large_dts=(), keep_runs=False, split_dts=()):
     """One case: hf, the yardstick runs and every surrogate (``{name: surrogate}``), at the
     parameters ``p`` (noise should be off); hf and the dynamic surrogates also at each step of
-    ``large_dts`` [s] (keys ``'<model>@dt=<step>'``).  With ``keep_runs`` the
+    ``large_dts`` [s] (keys ``'<model>@dt=<step>'``) and by the split integrator at each step
+    of ``split_dts`` (keys ``'<model>@split@dt=<step>'``).  With ``keep_runs`` the
     :class:`SimResult` objects are returned under ``'runs'`` (for plots)."""
     ref = run(p, scenario)
     cd = p.discharge_coefficient
@@ -133,13 +151,13 @@ def noise_free(p, scenario, surrogates, large_dts=(), keep_runs=False):
            'hf_cost_s_per_s': _cost(ref), 'models': {}}
     kept = {'hf': ref, **pert}
     for name, s in [('hf', None)] + list(surrogates.items()):
-        runs = {} if name == 'hf' else {'dt=1e-06': None}
+        runs = {} if name == 'hf' else {name: (None, EXPLICIT)}
         if name == 'hf' or name in DYNAMIC_MODELS:
-            runs.update({f'dt={dt:g}': float(dt) for dt in large_dts})
-        for label, dt in runs.items():
-            key = name if dt is None else f'{name}@{label}'
+            runs.update({f'{name}@dt={dt:g}': (float(dt), EXPLICIT) for dt in large_dts})
+            runs.update({f'{name}@{SPLIT}@dt={dt:g}': (float(dt), SPLIT) for dt in split_dts})
+        for key, (dt, integ) in runs.items():
             try:
-                r = run(p, scenario, s, dt=dt or DT_S)
+                r = run(p, scenario, s, dt=dt or DT_S, integrator=integ)
             except Exception as exc:  # a diverging or refused run is a result too
                 out['models'][key] = {'error': f'{type(exc).__name__}: {exc}'}
                 continue
@@ -200,17 +218,18 @@ def with_noise(p, scenario, surrogates, seeds=5):
 
 
 def largest_steps(summary) -> dict:
-    """Per model run at several steps (summary keys ``model`` at 1 us and ``model@dt=X``): the
+    """Per model run at several steps (summary keys ``model`` at 1 us and ``model@dt=X``; and
+    per model by the split integrator, ``model@split@dt=X``, under ``model@split``): the
     largest step [s] at which it meets the bounds in every case - and at every smaller step
     tried - with its median cost per simulated second against hf at 1 us (``None``: not even
-    at 1 us)."""
+    at the smallest step tried, 1 us for the explicit scheme)."""
     steps = {}
     for key, row in summary.items():
         name, _, dt = key.partition('@dt=')
         steps.setdefault(name, {})[float(dt) if dt else DT_S] = row
     out = {}
     for name, rows in steps.items():
-        if len(rows) < 2 and name != 'hf':
+        if len(rows) < 2 and name != 'hf' and not name.endswith(f'@{SPLIT}'):
             continue
         if name == 'hf':
             rows = {DT_S: {'cases_meeting_bounds': 1, 'cases': 1, 'median_cost_vs_hf': 1.0},

@@ -4,7 +4,11 @@ One plant step of ``dt`` is a forward-Euler step of the reference's block diagra
 motor (hysteresis, offset, noise, saturation, force), metering-edge flows, spool (Borello,
 flow force), first stage, jack (Borello), chamber pressures (cavitation clip), surface play,
 all evaluated at the state at the start of the step; the two second-order bodies (flapper,
-jack) update velocity before position (semi-implicit Euler).
+jack) update velocity before position (semi-implicit Euler).  That is the ``explicit``
+integrator, the reference's and the default; ``split`` takes the jack and its chambers as a
+Stormer-Verlet pair with linearly implicit pressures and places friction transitions and end
+stops on 1 us substeps, which holds the in-loop bounds at 10-25 us steps (:func:`.loop.run`,
+``bench/inloop.py``).
 
 The controller runs every ``controller_period_s`` (a whole number of plant steps; by default
 every step, as the reference's continuous-time PID) on the quantised sensor reading, and holds
@@ -34,9 +38,9 @@ from .commands import Scenario, get_scenario
 from .events import EventSchedule
 from .jack import quantise
 from .loop import (OPEN_LOOP, Clock, ClosedLoop, FluidBlock, diverged, fluid_kernels, pid,
-                   record, run)
+                   record, run, run_split)
 from .params import ParameterError, PlantParams, default_params
-from .stability import check_dt, dt_to_ns
+from .stability import EXPLICIT, check_dt, dt_to_ns, integrator_substeps
 from .state import N_REC, RECORD_FIELDS, S_SURF, STATE_NAMES, initial_state
 
 __all__ = ['NoiseSource', 'SimResult', 'Plant', 'PositionController', 'simulate']
@@ -82,6 +86,7 @@ class SimResult:
     seed: int
     wall_time_s: float
     events: list = dataclasses.field(default_factory=list)
+    integrator: str = EXPLICIT
 
     def __getitem__(self, key):
         return self.data[key]
@@ -93,16 +98,19 @@ class SimResult:
 
 class Plant:
     """The actuator plant advanced by a held coil-current command, for stepping from outside
-    (the ROS plant node).  ``advance`` over several calls is bit-identical to one call."""
+    (the ROS plant node), by the ``integrator`` of :func:`simulate`.  ``advance`` over several
+    calls is bit-identical to one call."""
 
     def __init__(self, params: PlantParams | None = None, dt_s: float = 1e-6, seed: int = 0,
-                 fluid: FluidBlock | None = None):
+                 fluid: FluidBlock | None = None, integrator: str = EXPLICIT):
         self.params = params if params is not None else default_params()
         self.fluid = fluid
         self._kernels = fluid_kernels(fluid, self.params)
-        check_dt(self.params, dt_s, fluid)
+        self.substeps = integrator_substeps(integrator, dt_s)
+        check_dt(self.params, dt_s, fluid, integrator)
         self.dt_s = float(dt_s)
         self.dt_ns = dt_to_ns(dt_s)
+        self.integrator = integrator
         self.seed = int(seed)
         self.reset()
 
@@ -115,7 +123,7 @@ class Plant:
     def set_params(self, params: PlantParams):
         """Change parameters (wear, degradation) from the next step on."""
         kernels = fluid_kernels(self.fluid, params)  # a dynamic surrogate's data per wear
-        check_dt(params, self.dt_s, self.fluid)
+        check_dt(params, self.dt_s, self.fluid, self.integrator)
         if (params.noise_std_a != self.params.noise_std_a
                 or params.noise_sample_time_s != self.params.noise_sample_time_s):
             raise ParameterError('noise_std_a and noise_sample_time_s cannot change during a '
@@ -140,9 +148,10 @@ class Plant:
         t_end = (self.steps + n_steps) * self.dt_s
         noise = self.noise.samples_until(t_end)
         clock = Clock(self.steps, int(n_steps), self.dt_s, self.dt_ns, noise,
-                      self.params.noise_sample_time_s)
-        status, done, _, _ = run(self.state, float(current_command_a), self.params, clock,
-                                 OPEN_LOOP, *self._kernels)
+                      self.params.noise_sample_time_s, self.substeps)
+        kernel = run_split if self.substeps else run
+        status, done, _, _ = kernel(self.state, float(current_command_a), self.params, clock,
+                                    OPEN_LOOP, *self._kernels)
         self.steps += done
         if status:
             raise diverged(status, self.time_s)
@@ -193,7 +202,7 @@ class PositionController:
 def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=None,
              dt_s: float = 1e-6, seed: int = 0, controller_period_s: float | None = None,
              record_dt_s: float | None = 1e-4, fluid: FluidBlock | None = None,
-             events=None) -> SimResult:
+             events=None, integrator: str = EXPLICIT) -> SimResult:
     """Closed-loop run: ``(params, scenario, duration, dt, seed) -> time histories``.
 
     Parameters
@@ -217,6 +226,10 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
         A surrogate of the fluid-dynamic block (:func:`eha_ros.surrogates.base.load_surrogate`,
         see :class:`.fluid.FluidBlock`): algebraic, its kernel gives P12, or dynamic, the
         metering-edge flows only (see :func:`.loop.run`); the high-fidelity block when ``None``.
+    integrator : str
+        ``explicit`` (the reference's scheme, the default) or ``split`` (the jack and its
+        chambers as a Stormer-Verlet pair with linearly implicit pressures, events in 1 us
+        substeps: the larger steps, see :func:`.loop.run` and ``bench/inloop.py``).
     events : optional
         Parameter changes during the run, after the scenario's own events: an
         :class:`~.events.EventSchedule` or what one is
@@ -234,8 +247,10 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     if not (duration > 0 and math.isfinite(duration)):
         raise ParameterError(f'duration_s = {duration_s} must be a positive number of seconds')
     kernels = fluid_kernels(fluid, p)
-    check_dt(p, dt_s, fluid)
+    substeps = integrator_substeps(integrator, dt_s)
+    check_dt(p, dt_s, fluid, integrator)
     dt_ns = dt_to_ns(dt_s)
+    kernel = run_split if substeps else run
     period = dt_s if controller_period_s is None else float(controller_period_s)
     steps_per_tick = int(round(period / dt_s))
     if steps_per_tick < 1 or abs(steps_per_tick * dt_s - period) > 1e-9 * period:
@@ -254,7 +269,7 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
         k = schedule.tick_of(ev)
         if k < n_ticks:
             kernels = fluid_kernels(fluid, q)
-            check_dt(q, dt_s, fluid)
+            check_dt(q, dt_s, fluid, integrator)
             segments[k] = (q, kernels)
             applied.append({'tick': k, 'time_s': (k * steps_per_tick * dt_ns) * 1e-9,
                             'changes': ev.as_dict()})
@@ -271,10 +286,10 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     for (k0, (q, kernels)), k1 in zip(segments.items(), ends):
         n0 = k0 * steps_per_tick
         clock = Clock(n0, (k1 - k0) * steps_per_tick, dt_s, dt_ns, samples,
-                      p.noise_sample_time_s)
+                      p.noise_sample_time_s, substeps)
         loop = ClosedLoop(ctrl, kind, args, com_t, com_v, steps_per_tick, rec_every,
                           -k0 % rec_every, rec[rows:])
-        status, done, new_rows, i_cmd = run(state, i_cmd, q, clock, loop, *kernels)
+        status, done, new_rows, i_cmd = kernel(state, i_cmd, q, clock, loop, *kernels)
         rows += new_rows
         if status:
             raise diverged(status, ((n0 + done) * dt_ns) * 1e-9)
@@ -286,4 +301,4 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     data = {name: rec[:rows, j].copy() for j, name in enumerate(RECORD_FIELDS)}
     return SimResult(data=data, params=p, scenario=sc, dt_s=float(dt_s),
                      controller_period_s=steps_per_tick * dt_s, seed=int(seed),
-                     wall_time_s=wall, events=applied)
+                     wall_time_s=wall, events=applied, integrator=integrator)

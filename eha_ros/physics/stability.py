@@ -16,7 +16,8 @@ from .servovalve import magnetic_stiffness, spool_gains
 from .valve import fluid_constants, orifice_flow, valve_coefficients, valve_constants
 
 __all__ = ['Limit', 'FLAPPER', 'JACK_SPRING', 'JACK_VISCOUS', 'CHAMBER', 'SPOOL', 'FLUID',
-           'stability_limits', 'stability_limit', 'dt_to_ns', 'check_dt']
+           'stability_limits', 'stability_limit', 'dt_to_ns', 'check_dt', 'EXPLICIT', 'SPLIT',
+           'INTEGRATORS', 'SUBSTEP_S', 'integrator_substeps']
 
 #: Keys of the bounds (:attr:`Limit.key`); ``FLUID`` is a surrogate's, in place of ``CHAMBER``.
 FLAPPER, JACK_SPRING, JACK_VISCOUS, CHAMBER, SPOOL, FLUID = (
@@ -44,10 +45,12 @@ def _edge_conductance_max(p: PlantParams) -> float:
     return worst
 
 
-def stability_limits(p: PlantParams, fluid: FluidBlock | None = None) -> list[Limit]:
+def stability_limits(p: PlantParams, fluid: FluidBlock | None = None,
+                     integrator: str = 'explicit') -> list[Limit]:
     """Per block, the largest stable step [s] of its linearisation under the explicit scheme.
 
-    With a surrogate ``fluid`` the chamber bound is replaced by the surrogate's own feedback
+    With the ``split`` integrator the chambers are linearly implicit and set no bound.  With a
+    surrogate ``fluid`` the chamber bound is replaced by the surrogate's own feedback
     bound (``fluid.stability_limit(p)``, key :data:`FLUID`): for an algebraic ``P12(XS, Q)``
     the jack sees ``AJ^2 dP12/dQ`` as a damper, for a dynamic one its flows' conductance sets
     the chamber bound as the valve's does.
@@ -87,13 +90,47 @@ def stability_limits(p: PlantParams, fluid: FluidBlock | None = None) -> list[Li
     if fluid is not None:
         limits = [x for x in limits if x.key != CHAMBER]
         limits.append(Limit(FLUID, *fluid.stability_limit(p)))
+    elif integrator != EXPLICIT:  # the chambers are linearly implicit: no bound of their own
+        limits = [x for x in limits if x.key != CHAMBER]
     return limits
 
 
-def stability_limit(p: PlantParams, fluid: FluidBlock | None = None) -> Limit:
+def stability_limit(p: PlantParams, fluid: FluidBlock | None = None,
+                    integrator: str = 'explicit') -> Limit:
     """The smallest of :func:`stability_limits`: the largest stable plant step and the block
     that sets it."""
-    return min(stability_limits(p, fluid), key=lambda x: x.dt_s)
+    return min(stability_limits(p, fluid, integrator), key=lambda x: x.dt_s)
+
+
+#: The plant's integrators (:func:`.loop.run`): ``explicit``, the reference's scheme and the
+#: default; ``split``, the jack and its chambers as a Stormer-Verlet pair with linearly
+#: implicit pressures, every step that holds an event it cannot place taken again in
+#: substeps of :data:`SUBSTEP_S`.
+EXPLICIT, SPLIT = 'explicit', 'split'
+INTEGRATORS = (EXPLICIT, SPLIT)
+#: The substep of ``split`` [s]: the reference's step, 1 us, so that a friction transition or
+#: an end stop falls on the grid the reference places it on.
+SUBSTEP_S = 1e-6
+
+
+def integrator_substeps(integrator: str, dt_s: float) -> int:
+    """``Clock.substeps`` of ``integrator`` at a step of ``dt_s``: 0 for ``explicit``; for
+    ``split`` the number of substeps of :data:`SUBSTEP_S` in a step (1 at 1 us and below,
+    where a step is its own substep).  Refuses an unknown name, or a ``split`` step above
+    1 us that is not a whole number of substeps."""
+    if integrator == EXPLICIT:
+        return 0
+    if integrator != SPLIT:
+        raise ParameterError(f'integrator {integrator!r} is not one of {", ".join(INTEGRATORS)}')
+    if not (dt_s > 0 and math.isfinite(dt_s)):
+        raise ParameterError(f'dt_s = {dt_s} must be a positive number of seconds')
+    m = round(dt_s / SUBSTEP_S)
+    if dt_s <= SUBSTEP_S:
+        return 1
+    if abs(m * SUBSTEP_S - dt_s) > 1e-9 * dt_s:
+        raise ParameterError(f'integrator {SPLIT}: dt_s = {dt_s:g} s must be a whole number of '
+                             f'its {SUBSTEP_S:g} s substeps')
+    return int(m)
 
 
 def dt_to_ns(dt_s: float) -> int:
@@ -104,13 +141,14 @@ def dt_to_ns(dt_s: float) -> int:
     return dt_ns
 
 
-def check_dt(p: PlantParams, dt_s: float, fluid: FluidBlock | None = None) -> None:
+def check_dt(p: PlantParams, dt_s: float, fluid: FluidBlock | None = None,
+             integrator: str = 'explicit') -> None:
     """Refuse a non-positive step or one beyond the stability limit, with the bound of what
     a surrogate ``fluid`` feeds back in place of the chamber bound (:func:`stability_limits`)."""
     if not (dt_s > 0 and math.isfinite(dt_s)):
         raise ParameterError(f'dt_s = {dt_s} must be a positive number of seconds')
     dt_to_ns(dt_s)
-    lim = stability_limit(p, fluid)
+    lim = stability_limit(p, fluid, integrator)
     if dt_s > lim.dt_s:
         raise ParameterError(f'dt_s = {dt_s:g} s exceeds the stability limit {lim.dt_s:.3g} s '
                              f'set by the {lim.reason}')

@@ -40,7 +40,8 @@ from numba import njit
 
 __all__ = ['FluidConstants', 'fluid_constants', 'edge_constants', 'valve_constants', 'net_flow',
            'edge_coefficients', 'orifice_flow', 'valve_coefficients', 'valve_flows',
-           'chamber_step', 'orifice_pressure_drop', 'steady_pressures',
+           'chamber_step', 'chamber_step_implicit', 'edge_conductance',
+           'net_flow_conductance', 'orifice_pressure_drop', 'steady_pressures',
            'steady_pressures_rtol']
 
 _TINY = 1e-300
@@ -115,6 +116,36 @@ def orifice_flow(dp_pa, rl, blam, r4):
 
 
 @njit(cache=True, inline='always')
+def edge_conductance(dp_pa, rl, blam, r4):
+    """``d orifice_flow / d dp_pa`` [m^3/(s Pa)] of one edge at the drop ``dp_pa``: with ``S =
+    sqrt(RL^2 + B_lam + R4 |dp|)`` and ``D = RL + S``, ``2/D - R4 |dp| / (S D^2)`` (positive;
+    unbounded only for an open edge under a constant Cd at a vanishing drop)."""
+    adp = abs(dp_pa)
+    sq = max(math.sqrt(rl * rl + blam + r4 * adp), _TINY)
+    den = rl + sq
+    return 2.0 / den - (r4 * adp / sq / den / den if adp > 0.0 else 0.0)
+
+
+@njit(cache=True, inline='always')
+def net_flow_conductance(dp_in, rl_in, bl_in, r4_in, dp_out, rl_out, bl_out, r4_out):
+    """``(net flow, conductance)``: the net flow of :func:`net_flow` (to rounding) and the sum
+    of the two edges' :func:`edge_conductance`, sharing their square roots."""
+    a_in = abs(dp_in)
+    a_out = abs(dp_out)
+    s_in = max(math.sqrt(rl_in * rl_in + bl_in + r4_in * a_in), _TINY)
+    s_out = max(math.sqrt(rl_out * rl_out + bl_out + r4_out * a_out), _TINY)
+    d_in = rl_in + s_in
+    d_out = rl_out + s_out
+    q = 2.0 * (dp_in / d_in - dp_out / d_out)
+    g = 2.0 / d_in + 2.0 / d_out  # less the drops' share of the square roots
+    if a_in > 0.0:
+        g -= r4_in * a_in / s_in / d_in / d_in
+    if a_out > 0.0:
+        g -= r4_out * a_out / s_out / d_out / d_out
+    return q, g
+
+
+@njit(cache=True, inline='always')
 def net_flow(dp_in, rl_in, bl_in, r4_in, dp_out, rl_out, bl_out, r4_out):
     """``orifice_flow(dp_in, ...) - orifice_flow(dp_out, ...)`` with a single division."""
     d_in = max(rl_in + math.sqrt(rl_in * rl_in + bl_in + r4_in * abs(dp_in)), _TINY)
@@ -168,6 +199,17 @@ def chamber_step(p1t, p2t, q1l, q2l, qm, stiffness_pa_m3, pvap_pa, dt):
     """
     p1t = p1t + (q1l - qm) * stiffness_pa_m3 * dt
     p2t = p2t + (qm - q2l) * stiffness_pa_m3 * dt
+    return p1t, p2t, max(pvap_pa, p1t), max(pvap_pa, p2t)
+
+
+@njit(cache=True, inline='always')
+def chamber_step_implicit(p1t, p2t, q1l, q2l, qm, stiffness_pa_m3, pvap_pa, dt, rate1, rate2):
+    """:func:`chamber_step` linearly implicit in each chamber's own pressure: ``rate1``,
+    ``rate2`` [1/s] are ``-d(dPkT/dt)/dPk`` (Bet/Vol times the chamber's valve conductance and
+    the leakage), and each increment is divided by ``1 + dt rate`` (Rosenbrock-Euler on the
+    diagonal: exact for a chamber relaxing linearly, stable at any step)."""
+    p1t = p1t + (q1l - qm) * stiffness_pa_m3 * dt / (1.0 + dt * rate1)
+    p2t = p2t + (qm - q2l) * stiffness_pa_m3 * dt / (1.0 + dt * rate2)
     return p1t, p2t, max(pvap_pa, p1t), max(pvap_pa, p2t)
 
 

@@ -34,7 +34,8 @@ def wear_inputs(wear, base) -> dict:
             'radial_clearance_m': wear[1]}
 
 
-def noise_free_spec(scenarios, wear_points: dict, models, large_dts=(), signals=()) -> dict:
+def noise_free_spec(scenarios, wear_points: dict, models, large_dts=(), signals=(),
+                    split_dts=()) -> dict:
     from eha_ros.physics import default_params
     base = default_params()
     spec = {'procedure': 'scenario', 'scenario': list(scenarios), 'models': ['hf'] + [
@@ -42,6 +43,8 @@ def noise_free_spec(scenarios, wear_points: dict, models, large_dts=(), signals=
             'cases': [wear_inputs(w, base) for w in wear_points.values()]}
     if large_dts:
         spec['large_dts'] = [float(d) for d in large_dts]
+    if split_dts:
+        spec['split_dts'] = [float(d) for d in split_dts]
     if signals:
         spec['signals'] = list(signals)
     return spec
@@ -94,7 +97,8 @@ def noise_free_results(table, wear_points: dict, keep_signals: bool = False) -> 
         for r in rows:
             if r is hf:
                 continue
-            name = r['model'] if r['dt_s'] == DT_S else f'{r["model"]}@dt={r["dt_s"]:g}'
+            name = r['model'] if r['dt_s'] == DT_S and '@' not in r['model'] \
+                else f'{r["model"]}@dt={r["dt_s"]:g}'
             if r['status'] != 'ok':
                 res['models'][name] = {'error': r['error']}
                 continue
@@ -158,12 +162,13 @@ def noise_results(table, models) -> dict:
 
 def run_comparison(folder, scenarios, wear_points: dict, models, noise_models=(),
                    seeds: int = 0, large_dts=(), signals=(), workers=None, in_process=False,
-                   warm=True, progress=True) -> dict:
+                   warm=True, progress=True, split_dts=()) -> dict:
     """Run both sweeps into ``folder/noise_free`` and ``folder/noise`` (resumed where they
     hold results) and return ``{'noise_free': ..., 'noise': ..., 'sweeps': summaries}``."""
     from . import parse_spec, read_dataset, run_sweep
     folder = Path(folder)
-    nf = parse_spec(noise_free_spec(scenarios, wear_points, models, large_dts, signals),
+    nf = parse_spec(noise_free_spec(scenarios, wear_points, models, large_dts, signals,
+                                    split_dts),
                     source='in-loop comparison, noise off')
     specs = [('noise_free', nf)]
     if noise_models and seeds > 0:

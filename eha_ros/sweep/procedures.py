@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from eha_ros.evaluation import CONTROLLER_PERIOD_S, features, run
+from eha_ros.evaluation import CONTROLLER_PERIOD_S, features, model_integrator, run
 from eha_ros.physics import ParameterError, SimulationDiverged
 from eha_ros.physics.params import replace
 from eha_ros.surrogates.base import relative_error
@@ -79,7 +79,7 @@ class Procedure:
     @classmethod
     def check(cls, spec, where: str) -> None:
         """Every point's parameters within the plant's ranges and every model's validity."""
-        from eha_ros.physics.stability import check_dt
+        from eha_ros.physics.stability import EXPLICIT, check_dt, integrator_substeps
         for _, dt in spec.case_models():
             n = cls.RECORD_DT_S / dt
             if cls.TICKED and abs(n - round(n)) > 1e-9 * n:
@@ -105,16 +105,21 @@ class Procedure:
             try:
                 p = pt.params(spec)
                 for c in pt.cases:
-                    s = models.get(c.model)
+                    name, integ = model_integrator(c.model)
+                    s = models.get(name)
                     if s is not None:
                         s.check_params(p)
                     if cls is ScenarioProcedure:
-                        check_dt(p, c.dt_s, s)
+                        integ = spec.integrator if integ == EXPLICIT else integ
+                        integrator_substeps(integ, c.dt_s)
+                        check_dt(p, c.dt_s, s, integ)
             except ValueError as exc:
                 raise _spec_error(f'{where}: case {label(pt.inputs)}: {exc}') from None
 
     def model(self, name):
-        """The fluid block of model ``name`` (``None`` for hf), loaded once."""
+        """The fluid block of model ``name`` (``None`` for hf; ``<name>@split`` is ``name``'s),
+        loaded once."""
+        name = model_integrator(name)[0]
         if name == 'hf':
             return None
         if name not in self._models:
@@ -169,8 +174,8 @@ class ScenarioProcedure(Procedure):
 
     @classmethod
     def check(cls, spec, where: str) -> None:
-        if spec.compare == 'yardstick' and spec.noise and spec.large_dts:
-            raise _spec_error(f'{where}: large_dts are compared noise-free only')
+        if spec.compare == 'yardstick' and spec.noise and (spec.large_dts or spec.split_dts):
+            raise _spec_error(f'{where}: large_dts and split_dts are compared noise-free only')
         super().check(spec, where)
 
     def run_point(self, point) -> list:
@@ -194,13 +199,15 @@ class ScenarioProcedure(Procedure):
                 if c.model == 'hf' and c.dt_s == self.spec.dt_s and ref is not None:
                     r = ref
                 else:
-                    r = run(p, sc, self.model(c.model), dt=c.dt_s, seed=point.seed)
+                    r = run(p, sc, self.model(c.model), dt=c.dt_s, seed=point.seed,
+                            integrator=self.spec.integrator)
                 if c.model == 'hf' and c.dt_s == self.spec.dt_s:
                     ref = r
                 m = features(r)
                 if c.model != 'hf':
                     if ref is None and need_ref:
-                        ref = run(p, sc, dt=self.spec.dt_s, seed=point.seed)
+                        ref = run(p, sc, dt=self.spec.dt_s, seed=point.seed,
+                                  integrator=self.spec.integrator)
                     m.update(_errors(r, ref))
                 row = self._row(c, m, 'ok', None, self._signals(r.data))
             except Exception as exc:  # a diverging or refused run is a result too
@@ -216,12 +223,20 @@ class ScenarioProcedure(Procedure):
         return [rows[c.case_id] for c in point.cases]
 
     def warm_up(self) -> None:
+        from eha_ros.graph import DYNAMIC_MODELS
         from eha_ros.physics import simulate
         p = self.spec.point_params({})
         for m in self.spec.models:
             simulate(p, self.spec.scenarios[0], duration_s=0.01, dt_s=self.spec.dt_s,
                      controller_period_s=CONTROLLER_PERIOD_S, record_dt_s=None,
-                     fluid=self.model(m))
+                     fluid=self.model(m), integrator=self.spec.integrator)
+        if self.spec.split_dts:  # the split kernel compiles apart
+            dt = self.spec.split_dts[0]
+            for m in ('hf',) + self.spec.models:
+                if m == 'hf' or m in DYNAMIC_MODELS:
+                    simulate(p, self.spec.scenarios[0], duration_s=0.01, dt_s=dt,
+                             controller_period_s=CONTROLLER_PERIOD_S, record_dt_s=None,
+                             fluid=self.model(m), integrator='split')
 
     def _row(self, case, metrics, status, error=None, signals=None) -> dict:
         return {'case_id': case.case_id, 'model': case.model, 'dt_s': case.dt_s,
@@ -234,7 +249,7 @@ class ScenarioProcedure(Procedure):
             p = point.params(self.spec)
             sur = {m: self.model(m) for m in self.spec.models if m != 'hf'}
             out = noise_free(p, point.scenario, sur, self.spec.large_dts,
-                             keep_runs=bool(self.spec.signals))
+                             keep_runs=bool(self.spec.signals), split_dts=self.spec.split_dts)
         except Exception as exc:
             return [self._row(c, {}, *_status(exc)) for c in point.cases]
         wall = time.perf_counter() - t0
@@ -253,7 +268,8 @@ class ScenarioProcedure(Procedure):
                 if runs:
                     row.update(self._envelope([runs[k] for k in out['yardstick']['runs']]))
             else:
-                key = c.model if c.dt_s == self.spec.dt_s else f'{c.model}@dt={c.dt_s:g}'
+                key = c.model if c.dt_s == self.spec.dt_s and '@' not in c.model \
+                    else f'{c.model}@dt={c.dt_s:g}'
                 r = out['models'][key]
                 if 'error' in r:
                     status = 'diverged' if r['error'].startswith('SimulationDiverged') \

@@ -15,7 +15,9 @@ The YAML form (README, "Sweeps")::
     cases: [{radial_clearance_m: 3.0e-6, seed: 4}, ...]   # explicit points, besides the grid
     compare: yardstick             # scenario: hf's yardstick per case (evaluation.noise_free)
     large_dts: [2.0e-6]            # with the yardstick: hf and dynamic models at these steps
+    split_dts: [1.0e-5]            # with the yardstick: the same by the split integrator
     dt_s: 1.0e-6                   # plant step [s]
+    integrator: explicit           # without compare: the plant's integrator (explicit | split)
     signals: [jack_position_m]     # trajectories kept per case, every signal_dt_s
     signal_dt_s: 1.0e-3
     metrics: [rms_tracking_error_m]   # a subset of the procedure's metrics (default: all)
@@ -41,6 +43,7 @@ import numpy as np
 
 from eha_ros.physics import ParameterError, get_scenario, params_to_dict
 from eha_ros.physics.params import SPEC_BY_NAME
+from eha_ros.physics.stability import EXPLICIT, INTEGRATORS, SPLIT
 
 from .errors import SpecError, label
 
@@ -53,7 +56,7 @@ MAX_CASES = 100_000
 #: Keys a spec may have.
 KEYS = ('procedure', 'scenario', 'models', 'seeds', 'noise', 'parameters', 'random', 'tie',
         'cases', 'compare', 'large_dts', 'dt_s', 'signals', 'signal_dt_s', 'metrics',
-        'flows_m3_s', 'valve_test_procedure', 'pressure_noise')
+        'flows_m3_s', 'valve_test_procedure', 'pressure_noise', 'split_dts', 'integrator')
 #: Plant step of every procedure [s] (the reference's, and the in-loop comparison's).
 DT_S = 1e-6
 
@@ -109,13 +112,18 @@ def _value(name, v, where):
     return _float(name, v, where)
 
 
-def case_id(procedure: str, scenario, model: str, dt_s: float, seed: int, params) -> str:
-    """The id of a case: a hash of what determines its result (16 hex digits)."""
+def case_id(procedure: str, scenario, model: str, dt_s: float, seed: int, params,
+            integrator: str = EXPLICIT) -> str:
+    """The id of a case: a hash of what determines its result (16 hex digits); the
+    ``integrator`` enters only where it is not the explicit one, so the ids of explicit runs
+    stay what they were before there was a choice."""
     d = params_to_dict(params)
-    blob = json.dumps({'procedure': procedure, 'scenario': scenario, 'model': model,
-                       'dt_s': repr(float(dt_s)), 'seed': int(seed),
-                       'params': {k: (repr(v) if isinstance(v, float) else v)
-                                  for k, v in sorted(d.items())}}, sort_keys=True)
+    what = {'procedure': procedure, 'scenario': scenario, 'model': model,
+            'dt_s': repr(float(dt_s)), 'seed': int(seed),
+            'params': {k: (repr(v) if isinstance(v, float) else v) for k, v in sorted(d.items())}}
+    if integrator != EXPLICIT:
+        what['integrator'] = integrator
+    blob = json.dumps(what, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -148,6 +156,10 @@ class Spec:
     #: VALVE_TEST_PROCEDURES`), and the relative measurement noise on its pressures
     valve_test_procedure: str = 'reference'
     pressure_noise: float = 0.0
+    #: with the yardstick: steps [s] at which hf and the dynamic models also run by the split
+    #: integrator (models ``<name>@split``); without it: the integrator of every case
+    split_dts: tuple = ()
+    integrator: str = EXPLICIT
     _points: list | None = dataclasses.field(default=None, repr=False)
 
     # --- the cases ------------------------------------------------------------------------
@@ -200,6 +212,10 @@ class Spec:
             from eha_ros.graph import DYNAMIC_MODELS
             out += [(m, dt) for dt in self.large_dts for m in ('hf',) + self.models
                     if m == 'hf' or m in DYNAMIC_MODELS]
+        if self.compare == 'yardstick' and self.split_dts:
+            from eha_ros.graph import DYNAMIC_MODELS
+            out += [(f'{m}@{SPLIT}', dt) for dt in self.split_dts
+                    for m in ('hf',) + self.models if m == 'hf' or m in DYNAMIC_MODELS]
         return list(dict.fromkeys(out))
 
     def points(self) -> list:
@@ -220,7 +236,8 @@ class Spec:
         for sc in self.scenarios:
             for (inputs, seed), p in zip(sets, params):
                 for s in ((seed,) if seed is not None else self.seeds):
-                    cases = tuple(Case(case_id(self.procedure, sc, m, dt, s, p), m, dt)
+                    cases = tuple(Case(case_id(self.procedure, sc, m, dt, s, p,
+                                               self.integrator), m, dt)
                                   for m, dt in variants)
                     pid = hashlib.sha256('.'.join(c.case_id for c in cases).encode()
                                          ).hexdigest()
@@ -401,6 +418,18 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
         if raw.get('large_dts') is not None else ()
     if large_dts and compare != 'yardstick':
         raise SpecError(f'{where}: large_dts needs compare: yardstick')
+    split_dts = tuple(_list_of_floats('split_dts', raw['split_dts'], where, positive=True)) \
+        if raw.get('split_dts') is not None else ()
+    if split_dts and compare != 'yardstick':
+        raise SpecError(f'{where}: split_dts needs compare: yardstick (without it, set '
+                        'integrator: split)')
+    integrator = raw.get('integrator', EXPLICIT)
+    if integrator not in INTEGRATORS:
+        raise SpecError(f'{where}: integrator {integrator!r} is not one of '
+                        f'{", ".join(INTEGRATORS)}')
+    if integrator != EXPLICIT and (procedure != 'scenario' or compare):
+        raise SpecError(f'{where}: integrator: {integrator} is for procedure scenario without '
+                        'compare (the yardstick compares by split_dts)')
     dt_s = _float('dt_s', raw.get('dt_s', DT_S), where)
     if not (dt_s > 0 and math.isfinite(dt_s)):
         raise SpecError(f'{where}: dt_s = {dt_s} must be a positive step [s]')
@@ -448,7 +477,8 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
                         '[0, 0.1]')
     spec = Spec(procedure, scenarios, tuple(models), seeds, noise, grid, random, dict(tie),
                 tuple(cases), compare, large_dts, dt_s, tuple(signals), signal_dt_s, metrics,
-                flows, dict(raw), valve_test_procedure=vtp, pressure_noise=float(pnoise))
+                flows, dict(raw), valve_test_procedure=vtp, pressure_noise=float(pnoise),
+                split_dts=split_dts, integrator=integrator)
     if base is None:
         from eha_ros.physics import default_params
         base = params_to_dict(default_params())
