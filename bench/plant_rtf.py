@@ -11,8 +11,13 @@ at dt = 1 us and, for hf and the dynamic surrogates, at each of ``--large-dts`` 
 steps at which ``bench/inloop.py`` measures them against hf at 1 us): wall seconds per simulated
 second and the ratio to hf's at 1 us.
 
+With the split integrator (``integrator='split'``: the chamber pressures implicit, the
+first stage and spool substepped at 1 us), hf and the dynamic surrogates are also timed at each
+of ``--split-dts`` (rows ``model@split@dt=...``, with their real-time factor), and every row
+says its cost against hf at the same step and integrator (``cost_vs_hf_same_step``).
+
     python bench/plant_rtf.py [--duration 1.0] [--repeat 3] [--models dlut,dnn,dga,lut,...]
-        [--large-dts 2e-6,5e-6]
+        [--large-dts 2e-6,5e-6] [--split-dts 1e-5,2e-5,2.5e-5]
 
 ``--against REV`` instead measures hf at dt = 1 us (both controller cases, both commands) of
 this checkout and of the git revision ``REV`` side by side, in one run: ``REV`` is checked out
@@ -125,6 +130,9 @@ def main():
     ap.add_argument('--repeat', type=int, default=3)
     ap.add_argument('--models', default=','.join(m for m in MODELS if m != 'hf'))
     ap.add_argument('--large-dts', default='2e-6,5e-6')
+    ap.add_argument('--split-dts', default='1e-5,2e-5,2.5e-5',
+                    help='steps [s] at which hf and the dynamic surrogates are timed with the '
+                         'split integrator')
     ap.add_argument('--against', metavar='REV', default=None,
                     help='time hf of this checkout against git revision REV, side by side')
     ap.add_argument('--rounds', type=int, default=3, help='alternations with --against')
@@ -140,7 +148,7 @@ def main():
                           'smoke': args.smoke}))
         return
     if args.smoke:
-        args.duration, args.repeat, args.large_dts = 0.01, 1, '5e-6'
+        args.duration, args.repeat, args.large_dts, args.split_dts = 0.01, 1, '5e-6', '1e-5'
         if args.models == ap.get_default('models'):
             args.models = 'dlut,lut'  # one dynamic, one static: each model compiles anew
     p = default_params()
@@ -148,7 +156,15 @@ def main():
     simulate(p, 'step_0p1', duration_s=1e-3)
     simulate(p, 'step_0p1', duration_s=1e-3, controller_period_s=1e-3)
     warmup = time.perf_counter() - t0
+    try:
+        large = [float(v) for v in args.large_dts.split(',') if v]
+        split = [float(v) for v in args.split_dts.split(',') if v]
+    except ValueError as exc:
+        ap.error(f'--large-dts / --split-dts: {exc}')
+    if not all(dt > 0 for dt in large + split):
+        ap.error('--large-dts and --split-dts must be positive steps in seconds')
     out = {'benchmark': 'plant_rtf', 'smoke': args.smoke,
+           'load_avg_before': [round(v, 2) for v in os.getloadavg()],
            'dt_s': 1e-6, 'simulated_s': args.duration,
            'jit_warmup_s': round(warmup, 3), 'cpu': platform.processor() or platform.machine(),
            'cases': {}}
@@ -168,26 +184,34 @@ def main():
         'real_time_factor']
     models = [m for m in args.models.split(',') if m]
     out['models'] = {}
-    large = [float(v) for v in args.large_dts.split(',') if v]
     for model in ['hf'] + models:
         fluid = None if model == 'hf' else load_surrogate(model, p)
-        dts = [1e-6] + (large if model == 'hf' or model in DYNAMIC_MODELS else [])
-        for dt in dts:
+        dynamic = model == 'hf' or model in DYNAMIC_MODELS
+        runs = [('explicit', 1e-6)] + [('explicit', dt) for dt in large if dynamic] + [
+            ('split', dt) for dt in split if dynamic]
+        for integrator, dt in runs:
             simulate(p, 'step_0p1', duration_s=2e-3, dt_s=dt, controller_period_s=1e-3,
-                     fluid=fluid)  # compile
+                     fluid=fluid, integrator=integrator)  # compile
             row = {}
             for scenario in ('step_0p1', 'sine_0p1_10pi'):
                 best = min(simulate(p, scenario, duration_s=args.duration, dt_s=dt,
-                                    controller_period_s=1e-3, fluid=fluid).wall_time_s
+                                    controller_period_s=1e-3, fluid=fluid,
+                                    integrator=integrator).wall_time_s
                            for _ in range(args.repeat))
                 row[scenario] = {'wall_s_per_simulated_s': round(best / args.duration, 5),
+                                 'real_time_factor': round(args.duration / best, 2),
                                  'ns_per_step': round(best / (args.duration / dt) * 1e9, 1)}
-            out['models'][f'{model}@dt={dt:g}'] = row
+            tag = '@split' if integrator == 'split' else ''
+            out['models'][f'{model}{tag}@dt={dt:g}'] = row
     hf_cost = {sc: out['models']['hf@dt=1e-06'][sc]['wall_s_per_simulated_s']
                for sc in ('step_0p1', 'sine_0p1_10pi')}
-    for row in out['models'].values():
+    for name, row in out['models'].items():
+        same = out['models']['hf' + name[name.index('@'):]]
         for sc, v in row.items():
             v['cost_vs_hf'] = round(v['wall_s_per_simulated_s'] / hf_cost[sc], 3)
+            v['cost_vs_hf_same_step'] = round(
+                v['wall_s_per_simulated_s'] / same[sc]['wall_s_per_simulated_s'], 3)
+    out['load_avg_after'] = [round(v, 2) for v in os.getloadavg()]
     print(json.dumps(out))
 
 

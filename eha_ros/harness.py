@@ -132,6 +132,7 @@ class GraphConfig:
     duration_s: float | None = None
     rate_hz: float = 1000.0
     dt_s: float = 1e-6
+    integrator: str = 'explicit'
     seed: int = 0
     plant: dict = dataclasses.field(default_factory=dict)
     health: bool = False
@@ -194,6 +195,7 @@ class GraphConfig:
             'command_generator': dict(common, scenario=self.scenario, use_sim_time=sim),
             'controller': dict(common, params_file=self.params_file, use_sim_time=sim),
             'servovalve_plant': dict(common, model=self.model, dt_s=float(self.dt_s),
+                                     integrator=str(self.integrator),
                                      seed=int(self.seed), params_file=self.params_file,
                                      duration_s=self.resolved_duration(),
                                      handshake_nodes=self.nodes(),

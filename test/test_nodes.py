@@ -27,6 +27,8 @@ def _run_node(name, *ros_args, env, timeout=30):
     ('servovalve_plant', 'radial_clearance_m:=0.0', ['radial_clearance_m']),
     ('servovalve_plant', 'model:=warp', ['model', 'warp']),
     ('servovalve_plant', 'dt_s:=0.001', ['dt_s', 'stability limit']),
+    ('servovalve_plant', 'integrator:=rk4', ['integrator', 'rk4', 'split']),
+    ('servovalve_plant', ('integrator:=split', 'dt_s:=0.001'), ['dt_s', 'stability limit']),
     ('servovalve_plant', 'jack_dynamic_friction_n:=900.0', ['jack_dynamic_friction_n']),
     ('controller', 'kp_a_m:=-1.0', ['kp_a_m']),
     ('controller', 'mode:=sometimes', ['mode']),

@@ -17,10 +17,12 @@ closes the recording and prints the summary of what ran.
 Parameters, lowest precedence first: the nodes' defaults, ``--params-file`` (ROS 2's
 ``/node: ros__parameters:`` form, e.g. the installed ``config/graph.yaml``; ``/**`` applies to
 every node that declares the parameter, and one that no node declares is refused), the
-options (``--scenario``, ``--model``, ``--mode``, ``--seed``, ``--rate``, ``--dt``), then
+options (``--scenario``, ``--model``, ``--mode``, ``--seed``, ``--rate``, ``--dt``,
+``--integrator``), then
 ``--set node.name=value``. The harness owns the timing and start-up parameters (``mode``,
 ``use_sim_time``, ``handshake_nodes``, ...): from a params file, ``scenario``, ``model``,
-``mode``, ``rate_hz``, ``dt_s`` and ``seed`` are taken as the options' defaults.
+``mode``, ``rate_hz``, ``dt_s``, ``integrator`` and ``seed`` are taken as the options'
+defaults.
 
 Events (``--event T:node.parameter=value``, repeatable; a scenario's ``events:``) are handed to
 the plant or the controller before the run and take effect at the first tick whose time is at
@@ -66,7 +68,8 @@ MANAGED = frozenset(('mode', 'use_sim_time', 'handshake_nodes', 'duration_s', 'o
 #: Params-file entries taken as the options' defaults: ``(node, parameter) -> option``.
 PROMOTED = {('command_generator', 'scenario'): 'scenario', ('servovalve_plant', 'model'): 'model',
             ('servovalve_plant', 'mode'): 'mode', ('servovalve_plant', 'rate_hz'): 'rate_hz',
-            ('servovalve_plant', 'dt_s'): 'dt_s', ('servovalve_plant', 'seed'): 'seed'}
+            ('servovalve_plant', 'dt_s'): 'dt_s', ('servovalve_plant', 'seed'): 'seed',
+            ('servovalve_plant', 'integrator'): 'integrator'}
 
 #: Parameters rclpy declares on every node that are not the graph's (read-only).
 RCLPY_OWN = frozenset(('start_type_description_service',))
@@ -233,10 +236,11 @@ def build_config(args):
     """The :class:`~eha_ros.harness.GraphConfig` of the command line."""
     from eha_ros.harness import GraphConfig
     from eha_ros.physics import get_scenario, ParameterError
+    from eha_ros.physics.stability import EXPLICIT, INTEGRATORS
 
     file_params = read_params_file(args.params_file) if args.params_file else {}
     options = {'scenario': 'step_0p1', 'model': 'hf', 'mode': 'lockstep', 'rate_hz': 1000.0,
-               'dt_s': 1e-6, 'seed': 0}
+               'dt_s': 1e-6, 'seed': 0, 'integrator': EXPLICIT}
     for (node, name), option in PROMOTED.items():
         if name in file_params.get(node, {}):
             options[option] = file_params[node][name]
@@ -260,6 +264,9 @@ def build_config(args):
         raise UsageError(f'mode {options["mode"]!r} must be one of {", ".join(graph.MODES)}')
     if options['model'] not in graph.MODELS:
         raise UsageError(f'model {options["model"]!r} must be one of {", ".join(graph.MODELS)}')
+    if options['integrator'] not in INTEGRATORS:
+        raise UsageError(f'integrator {options["integrator"]!r} must be one of '
+                         f'{", ".join(INTEGRATORS)}')
     try:
         get_scenario(options['scenario'])
     except (ParameterError, KeyError, ValueError) as exc:
@@ -279,7 +286,8 @@ def build_config(args):
     config = GraphConfig(scenario=options['scenario'], model=options['model'],
                          mode=options['mode'], duration_s=args.duration,
                          rate_hz=float(options['rate_hz']), dt_s=float(options['dt_s']),
-                         seed=int(options['seed']), health=args.health,
+                         integrator=str(options['integrator']), seed=int(options['seed']),
+                         health=args.health,
                          record=args.record or '', events=parse_events(args.event),
                          node_params=node_params, rt=args.rt, trace=args.trace or '',
                          handshake_timeout_s=min(float(args.timeout), 600.0))
@@ -464,6 +472,8 @@ def main(argv=None) -> int:
                     help='tick rate (default 1000)')
     ap.add_argument('--dt', dest='dt_s', type=float, metavar='S',
                     help='plant integration step (default 1e-6)')
+    ap.add_argument('--integrator', help='plant integration scheme: explicit (the 1 us '
+                    'reference, default) or split (implicit chambers: steps of 10 us and more)')
     ap.add_argument('--event', action='append', metavar='T:NODE.NAME=VALUE',
                     help='change a parameter at simulated time T s (repeatable), applied at '
                          'the first tick at or after T, e.g. '
