@@ -387,8 +387,8 @@ print(s.p12(1.0, 0.0, 0.0, 1e-6))
 def test_kernels_passed_as_arguments_never_reach_the_disk_cache(tmp_path):
     """Fresh processes, one after the other, each running the plant with the hf block, a
     shipped surrogate and a kernel of their own: every one succeeds (a numba function typed
-    by its object in a disk-cache key breaks the cache for later processes), and the loop
-    that takes the kernel as an argument leaves no cache entry."""
+    by its object in a disk-cache key breaks the cache for later processes); the loop's forms
+    that take a kernel leave no cache entry, and its high-fidelity forms do."""
     import eha_ros.physics.loop as loop
     for _ in range(2):
         out = subprocess.run([sys.executable, '-c', _FRESH_PROCESS], capture_output=True,
@@ -396,4 +396,5 @@ def test_kernels_passed_as_arguments_never_reach_the_disk_cache(tmp_path):
         assert out.returncode == 0, out.stderr[-2000:]
         assert out.stdout.strip() == '1.0'
     cache = Path(loop.__file__).parent / '__pycache__'
-    assert not list(cache.glob('loop.run-*'))
+    assert not list(cache.glob('loop.*kernel-*')), sorted(p.name for p in cache.iterdir())
+    assert list(cache.glob('loop._run_hf-*.nbi')), sorted(p.name for p in cache.iterdir())

@@ -250,119 +250,150 @@ def _constants(p):
             p.overlap_supply_m, p.overlap_return_m, p.radial_clearance_m, 0.5 * (ps + pr))
 
 
-def _make_run(split: bool):
-    """The kernel :func:`run` (``split`` False) or :func:`run_split`: ``split`` is a
-    compile-time constant of each, so the explicit kernel holds no branch of the other."""
+@njit(inline='always')
+def _run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, split):
+    """Advance the plant state ``s`` (in place) by ``clock.n_steps`` steps of ``clock.dt``.
 
-    @njit  # not cached on disk: see below
-    def run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
-        """Advance the plant state ``s`` (in place) by ``clock.n_steps`` steps of ``clock.dt``.
+    Fluid block (:func:`fluid_kernels`): the high-fidelity one when both kernels are
+    ``None``.  ``p12_fn`` (an algebraic surrogate): the block is replaced by ``P12 =
+    p12_fn(data, XS, QJ, overlap, clearance)`` with the load flow imposed by the jack, ``QJ =
+    AJ dXJ/dt``; P1, P2 are then reported as mid-pressure +- P12/2.  ``flows_fn`` (a dynamic
+    surrogate): only the metering-edge flows come from the surrogate, ``(Q1L, Q2L) =
+    flows_fn(data, XS, P1, P2, OSSV, ORSV)``; chambers, leakage, cavitation clip and jack stay
+    the high-fidelity ones.  (The kernels and their data are arguments of their own, not a
+    tuple's: numba types a tuple of arrays at a call much faster than a named tuple.)
 
-        Fluid block (:func:`fluid_kernels`): the high-fidelity one when both kernels are
-        ``None``.  ``p12_fn`` (an algebraic surrogate): the block is replaced by ``P12 =
-        p12_fn(data, XS, QJ, overlap, clearance)`` with the load flow imposed by the jack, ``QJ =
-        AJ dXJ/dt``; P1, P2 are then reported as mid-pressure +- P12/2.  ``flows_fn`` (a dynamic
-        surrogate): only the metering-edge flows come from the surrogate, ``(Q1L, Q2L) =
-        flows_fn(data, XS, P1, P2, OSSV, ORSV)``; chambers, leakage, cavitation clip and jack stay
-        the high-fidelity ones.  (The kernels and their data are arguments of their own, not a
-        tuple's: numba types a tuple of arrays at a call much faster than a named tuple.)
+    Integrator (``clock.substeps``, :func:`.stability.integrator_substeps`):
 
-        Integrator (``clock.substeps``, :func:`.stability.integrator_substeps`):
+    * ``0``, explicit (the reference's scheme): every derivative from the state at the start
+      of the step, as a fixed-step ode1 solver evaluates a block diagram; the two
+      second-order bodies update velocity before position.
+    * ``m >= 1``, split: the electromechanics as above; the jack and its two chambers as a
+      Stormer-Verlet pair (pressures half a step with the jack's velocity at the start, the
+      jack a step on that load pressure with its position by the trapezoid rule, the
+      pressures a step with the volume the jack swept), each chamber pressure linearly
+      implicit in itself (its valve conductance and leakage: Rosenbrock-Euler on the
+      diagonal, so the chambers set no step bound); and a step that holds an event it cannot
+      place (:func:`_event`: a friction transition, an end stop, a breakaway due within the
+      step) is taken again from its start as ``m`` such steps of ``dt / m``.  Why (measured,
+      ``bench/inloop.py``): the smooth model is not stiff along the runs (largest
+      eigenvalue of the frictionless Jacobian about 5.3e3 1/s), but the forward-Euler
+      coupling of jack and chambers gains energy in the hydraulic spring, about
+      ``(w_h dt)^2`` per step, which at 10 us lengthens every stick-slip slide by about 1 %;
+      friction sticking then turns that into a different hold.
 
-        * ``0``, explicit (the reference's scheme): every derivative from the state at the start
-          of the step, as a fixed-step ode1 solver evaluates a block diagram; the two
-          second-order bodies update velocity before position.
-        * ``m >= 1``, split: the electromechanics as above; the jack and its two chambers as a
-          Stormer-Verlet pair (pressures half a step with the jack's velocity at the start, the
-          jack a step on that load pressure with its position by the trapezoid rule, the
-          pressures a step with the volume the jack swept), each chamber pressure linearly
-          implicit in itself (its valve conductance and leakage: Rosenbrock-Euler on the
-          diagonal, so the chambers set no step bound); and a step that holds an event it cannot
-          place (:func:`_event`: a friction transition, an end stop, a breakaway due within the
-          step) is taken again from its start as ``m`` such steps of ``dt / m``.  Why (measured,
-          ``bench/inloop.py``): the smooth model is not stiff along the runs (largest
-          eigenvalue of the frictionless Jacobian about 5.3e3 1/s), but the forward-Euler
-          coupling of jack and chambers gains energy in the hydraulic spring, about
-          ``(w_h dt)^2`` per step, which at 10 us lengthens every stick-slip slide by about 1 %;
-          friction sticking then turns that into a different hold.
+    ``loop`` :data:`OPEN_LOOP`: the coil current command ``i_cmd`` is held.  Otherwise the
+    controller runs every ``loop.steps_per_tick`` steps on the quantised sensor and the
+    ticks are recorded as :class:`ClosedLoop` says, each before the plant moves on.
 
-        ``loop`` :data:`OPEN_LOOP`: the coil current command ``i_cmd`` is held.  Otherwise the
-        controller runs every ``loop.steps_per_tick`` steps on the quantised sensor and the
-        ticks are recorded as :class:`ClosedLoop` says, each before the plant moves on.
+    The time of step ``n`` is ``(n dt_ns) 1e-9`` s, from the integer nanoseconds a ROS clock
+    carries, so the graph evaluates commands at the same times bit for bit.  Returns
+    ``(status, steps done, rows recorded, i_cmd)``: status 0, or 1 + the index into
+    ``_WATCHED`` of the first state that diverged.
 
-        The time of step ``n`` is ``(n dt_ns) 1e-9`` s, from the integer nanoseconds a ROS clock
-        carries, so the graph evaluates commands at the same times bit for bit.  Returns
-        ``(status, steps done, rows recorded, i_cmd)``: status 0, or 1 + the index into
-        ``_WATCHED`` of the first state that diverged.
-
-        Not cached on disk: a kernel (a numba function passed in an argument) is typed by its
-        object, not its code, so a cache entry keyed by it never matches in another process and,
-        once that object is gone, breaks the saving of the cache index for every later entry.  The
-        blocks it calls are cached; this function compiles in a few seconds per process.
-        """
-        # everything out of the tuples once, before the loop (an array taken from a tuple is
-        # reference-counted at each access)
-        n0, n_steps, dt, dt_ns, noise, noise_dt, substeps = clock
-        ctrl, kind, args, com_t, com_v, steps_per_tick, rec_every, rec_wait, rec = loop
-        c = _constants(p)
-        q = p.sensor_resolution_m
-        steps_per_noise = dt / noise_dt
-        sub_dt = dt / max(substeps, 1)
-        subs_per_noise = sub_dt / noise_dt
-        y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q2l = s  # STATE_NAMES
-        status = 0
-        done = 0
-        row = 0
-        period = steps_per_tick * dt
-        inv_period = 1.0 / period if steps_per_tick > 0 else 0.0
-        until_tick = 0
-        until_rec = rec_wait
-        for j in range(n_steps):
-            n = n0 + j
-            if steps_per_tick > 0:
-                if until_tick == 0:
-                    until_tick = steps_per_tick
-                    t = (n * dt_ns) * 1e-9
-                    r = command_value(kind, args, com_t, com_v, t)
-                    i_cmd = pid(ctrl, r - quantise(surf, q), period, inv_period, p)
-                    if until_rec == 0:
-                        until_rec = rec_every
-                        _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f,
-                              q1l, q2l)
-                        record(rec, row, t, r, i_cmd, s, p)
-                        row += 1
-                    until_rec -= 1
-                until_tick -= 1
-            k = int(n * steps_per_noise)
-            (y1, xf1, vf1, xs1, vs1, p1t1, p2t1, p11, p21, xj1, vj1, surf1, qj1, i1, f1, q1l1,
-             q2l1) = _step(y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, i_cmd, noise[k], p,
-                           c, p12_fn, flows_fn, data, dt, split)
-            if substeps > 1 and _event(xf1, vf, vf1, xs1, vs, vs1, xj1, vj, vj1, p11, p21, qj1,
-                                       c, p):
-                for m in range(substeps):
-                    k = int((n * substeps + m) * subs_per_noise)
-                    (y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l,
-                     q2l) = _step(y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, i_cmd,
-                                  noise[k], p, c, p12_fn, flows_fn, data, sub_dt, True)
-            else:
+    Compiled in four forms (below), explicit or split with ``split`` a constant of each.  The
+    high-fidelity forms (both kernels ``None``) are cached on disk, so a process loads them
+    instead of compiling them (tens of seconds: the blocks are inlined for speed).  A
+    surrogate's forms are not: a kernel (a numba function passed in an argument) is typed by
+    its object, not its code, so a cache entry keyed by it never matches in another process
+    and, once that object is gone, breaks the saving of the cache index for every later entry.
+    """
+    # everything out of the tuples once, before the loop (an array taken from a tuple is
+    # reference-counted at each access)
+    n0, n_steps, dt, dt_ns, noise, noise_dt, substeps = clock
+    ctrl, kind, args, com_t, com_v, steps_per_tick, rec_every, rec_wait, rec = loop
+    c = _constants(p)
+    q = p.sensor_resolution_m
+    steps_per_noise = dt / noise_dt
+    sub_dt = dt / max(substeps, 1)
+    subs_per_noise = sub_dt / noise_dt
+    y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q2l = s  # STATE_NAMES
+    status = 0
+    done = 0
+    row = 0
+    period = steps_per_tick * dt
+    inv_period = 1.0 / period if steps_per_tick > 0 else 0.0
+    until_tick = 0
+    until_rec = rec_wait
+    for j in range(n_steps):
+        n = n0 + j
+        if steps_per_tick > 0:
+            if until_tick == 0:
+                until_tick = steps_per_tick
+                t = (n * dt_ns) * 1e-9
+                r = command_value(kind, args, com_t, com_v, t)
+                i_cmd = pid(ctrl, r - quantise(surf, q), period, inv_period, p)
+                if until_rec == 0:
+                    until_rec = rec_every
+                    _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f,
+                          q1l, q2l)
+                    record(rec, row, t, r, i_cmd, s, p)
+                    row += 1
+                until_rec -= 1
+            until_tick -= 1
+        k = int(n * steps_per_noise)
+        (y1, xf1, vf1, xs1, vs1, p1t1, p2t1, p11, p21, xj1, vj1, surf1, qj1, i1, f1, q1l1,
+         q2l1) = _step(y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, i_cmd, noise[k], p,
+                       c, p12_fn, flows_fn, data, dt, split)
+        if substeps > 1 and _event(xf1, vf, vf1, xs1, vs, vs1, xj1, vj, vj1, p11, p21, qj1,
+                                   c, p):
+            for m in range(substeps):
+                k = int((n * substeps + m) * subs_per_noise)
                 (y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l,
-                 q2l) = (y1, xf1, vf1, xs1, vs1, p1t1, p2t1, p11, p21, xj1, vj1, surf1, qj1, i1,
-                         f1, q1l1, q2l1)
-            done = j + 1
-            chk = xf + vf + xs + p1t + p2t + xj + vj
-            if not (abs(chk) < _DIVERGED_ABS):
-                vals = (xf, vf, xs, p1t, p2t, xj, vj)
-                status = len(vals)
-                for m in range(len(vals)):
-                    if not (abs(vals[m]) < _DIVERGED_ABS):
-                        status = m + 1
-                        break
-                break
-        _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q2l)
-        return status, done, row, i_cmd
+                 q2l) = _step(y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, i_cmd,
+                              noise[k], p, c, p12_fn, flows_fn, data, sub_dt, True)
+        else:
+            (y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l,
+             q2l) = (y1, xf1, vf1, xs1, vs1, p1t1, p2t1, p11, p21, xj1, vj1, surf1, qj1, i1,
+                     f1, q1l1, q2l1)
+        done = j + 1
+        chk = xf + vf + xs + p1t + p2t + xj + vj
+        if not (abs(chk) < _DIVERGED_ABS):
+            vals = (xf, vf, xs, p1t, p2t, xj, vj)
+            status = len(vals)
+            for m in range(len(vals)):
+                if not (abs(vals[m]) < _DIVERGED_ABS):
+                    status = m + 1
+                    break
+            break
+    _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l, q2l)
+    return status, done, row, i_cmd
 
-    return run
+
+# The kernel in four compiled forms: explicit or split (``split`` a constant of each, so the
+# explicit kernel holds no branch of the other), the high-fidelity block (cached on disk:
+# every argument is typed by its value) or a surrogate's kernel (not cached, see _run).
+
+@njit(cache=True)
+def _run_hf(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
+    return _run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, False)
 
 
-run = _make_run(False)
-run_split = _make_run(True)
+@njit(cache=True)
+def _run_split_hf(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
+    return _run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, True)
+
+
+@njit
+def _run_kernel(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
+    return _run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, False)
+
+
+@njit
+def _run_split_kernel(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
+    return _run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, True)
+
+
+def run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
+    """The plant's kernel, explicit (:func:`_run`): the high-fidelity block's compiled form
+    comes from the disk cache, a surrogate's kernel is compiled once per process."""
+    if p12_fn is None and flows_fn is None:
+        return _run_hf(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data)
+    return _run_kernel(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data)
+
+
+def run_split(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
+    """The plant's kernel, split (:func:`_run`); compiled forms as :func:`run`'s."""
+    if p12_fn is None and flows_fn is None:
+        return _run_split_hf(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data)
+    return _run_split_kernel(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data)
