@@ -3,7 +3,7 @@ JSON object (:mod:`eha_ros.evaluation` defines every figure).
 
 Cases: the reference's nine scenarios, ``step_1mm`` and ``step_0p3mm`` (large signals) and
 ``chirp_0p1``, at every wear point of ``WEAR_POINTS`` (nominal, two off the wear grids of
-every table and six drawn at random over the dynamic surrogates' range,
+every table, six drawn at random over the dynamic surrogates' range and two worn holds,
 :mod:`eha_ros.evaluation`).  Noise-free: errors, yardstick, bounds and features per case,
 every model, and hf and the dynamic surrogates again at each of ``--large-dts`` (2, 5 and
 10 us) against hf at 1 us, and by the split integrator at each of ``--split-dts`` (10, 20 and

@@ -51,15 +51,23 @@ from eha_ros.surrogates.base import relative_error
 EXTRA_SCENARIOS = ('step_1mm', 'step_0p3mm', 'chirp_0p1')
 #: Wear points (overlap of both edges, clearance) [m] of the in-loop comparison: nominal; two
 #: off the grids of every table (the algebraic tables' DB1 grid, 2 um / 1.25 um steps; the
-#: dynamic table's log-spaced clearance); and six drawn at random, uniformly over the whole
+#: dynamic table's log-spaced clearance); six drawn at random, uniformly over the whole
 #: range the plant accepts for the dynamic surrogates (``WEAR_RANGES``: overlap -2..6 um,
 #: clearance 1..6 um), by ``rng = np.random.default_rng(2026)``, overlaps
-#: ``rng.uniform(-2e-6, 6e-6, 6)`` then clearances ``rng.uniform(1e-6, 6e-6, 6)``, rounded
-#: to 0.01 um and written out (so they never move with numpy's generator).
+#: ``rng.uniform(-2e-6, 6e-6, 6)`` then clearances ``rng.uniform(1e-6, 6e-6, 6)``; and two
+#: worn holds, where a 1 mm step ends with the jack stuck a sensor quantum from the command
+#: and hf's own hold pressure flips by a third between two sticking points under a change of
+#: Cd of 5e-5 (the yardstick, not a surrogate, sets the P12 bound there): ``worn_hold`` at
+#: overlap 0.3 um, clearance 3.7 um, and ``worn_hold_b`` drawn over the worn corner (overlap
+#: -0.5..1 um, clearance 3..6 um) by ``rng = np.random.default_rng([0x40D1, 2])``, overlaps
+#: ``rng.uniform(-0.5e-6, 1e-6, 8)`` then clearances ``rng.uniform(3e-6, 6e-6, 8)``, the
+#: fourth pair.  All rounded to 0.01 um and written out (so they never move with numpy's
+#: generator).
 WEAR_POINTS = {'nominal': None, 'worn_a': (3.1e-6, 3.9e-6), 'worn_b': (-0.7e-6, 1.6e-6),
                'rand_1': (-0.57e-6, 5.53e-6), 'rand_2': (3.12e-6, 1.89e-6),
                'rand_3': (1.74e-6, 4.26e-6), 'rand_4': (0.96e-6, 2.49e-6),
-               'rand_5': (0.84e-6, 5.83e-6), 'rand_6': (4.32e-6, 5.6e-6)}
+               'rand_5': (0.84e-6, 5.83e-6), 'rand_6': (4.32e-6, 5.6e-6),
+               'worn_hold': (0.3e-6, 3.7e-6), 'worn_hold_b': (0.14e-6, 4.08e-6)}
 CONTROLLER_PERIOD_S = 1e-3
 DT_S = 1e-6
 #: Relative changes of the discharge coefficient in hf's yardstick, each of both signs: the
