@@ -87,6 +87,30 @@ def test_spec_refusals(change, words):
     assert words in msg and '\n' not in msg
 
 
+@pytest.mark.parametrize('procedure', ['scenario', 'preflight_check'])
+def test_the_split_integrator_is_a_case_of_its_own_where_it_applies(procedure):
+    """scenario and preflight_check take ``integrator: split`` (other ids than the explicit
+    cases: another result); a step that is no whole number of its substeps is refused."""
+    raw = {'procedure': procedure, 'models': ['hf'], 'seeds': [0], 'noise': True}
+    if procedure == 'scenario':
+        raw['scenario'] = 'step_0p1'
+    split = parse_spec(dict(raw, integrator='split'))   # at the explicit scheme's own step
+    explicit = parse_spec(raw)
+    assert split.integrator == 'split' and explicit.integrator == 'explicit'
+    assert parse_spec(dict(raw, integrator='split', dt_s=1e-5)).dt_s == 1e-5
+    ids = {c.case_id for p in split.points() for c in p.cases}
+    assert ids.isdisjoint(c.case_id for p in explicit.points() for c in p.cases)
+    with pytest.raises(SpecError, match='whole number') as e:
+        parse_spec(dict(raw, integrator='split', dt_s=2.5e-6))
+    assert '\n' not in str(e.value)
+
+
+def test_the_valve_test_refuses_another_integrator():
+    with pytest.raises(SpecError, match='integrator: split is for procedures scenario') as e:
+        parse_spec({'procedure': 'valve_test', 'models': ['hf'], 'integrator': 'split'})
+    assert '\n' not in str(e.value)
+
+
 def test_cli_refuses_a_bad_spec_before_anything_runs(tmp_path):
     """One line on stderr, exit 2, no output folder; the size guard the same way."""
     bad = _write(tmp_path / 'bad.yaml', dict(SPEC, parameters={'radial_clearance_m': [1.0]}))

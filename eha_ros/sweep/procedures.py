@@ -109,7 +109,7 @@ class Procedure:
                     s = models.get(name)
                     if s is not None:
                         s.check_params(p)
-                    if cls is ScenarioProcedure:
+                    if cls in (ScenarioProcedure, PreflightProcedure):
                         integ = spec.integrator if integ == EXPLICIT else integ
                         integrator_substeps(integ, c.dt_s)
                         check_dt(p, c.dt_s, s, integ)
@@ -141,7 +141,8 @@ class Procedure:
         from eha_ros.physics import Plant
         p = self.spec.point_params({})
         for m in self.spec.models:
-            Plant(p, dt_s=self.spec.dt_s, fluid=self.model(m)).advance(0.0, 100)
+            Plant(p, dt_s=self.spec.dt_s, fluid=self.model(m),
+                  integrator=self.spec.integrator).advance(0.0, 100)
 
 
 def _spec_error(text):
@@ -410,7 +411,8 @@ class PreflightProcedure(Procedure):
             t = time.perf_counter()
             row = {'case_id': c.case_id, 'model': c.model, 'dt_s': c.dt_s}
             try:
-                rec = run_preflight(p, seed=point.seed, dt_s=c.dt_s, fluid=self.model(c.model))
+                rec = run_preflight(p, seed=point.seed, dt_s=c.dt_s, fluid=self.model(c.model),
+                                    integrator=self.spec.integrator)
                 m = {}
                 if estimate:   # with the conditions the bench measures (seeded by the case)
                     from eha_ros.health.preflight import CONDITION_READINGS, load_faults

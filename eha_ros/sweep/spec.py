@@ -17,7 +17,8 @@ The YAML form (README, "Sweeps")::
     large_dts: [2.0e-6]            # with the yardstick: hf and dynamic models at these steps
     split_dts: [1.0e-5]            # with the yardstick: the same by the split integrator
     dt_s: 1.0e-6                   # plant step [s]
-    integrator: explicit           # without compare: the plant's integrator (explicit | split)
+    integrator: explicit           # scenario without compare, preflight_check: the plant's
+                                   # integrator (explicit | split)
     signals: [jack_position_m]     # trajectories kept per case, every signal_dt_s
     signal_dt_s: 1.0e-3
     metrics: [rms_tracking_error_m]   # a subset of the procedure's metrics (default: all)
@@ -427,9 +428,10 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
     if integrator not in INTEGRATORS:
         raise SpecError(f'{where}: integrator {integrator!r} is not one of '
                         f'{", ".join(INTEGRATORS)}')
-    if integrator != EXPLICIT and (procedure != 'scenario' or compare):
-        raise SpecError(f'{where}: integrator: {integrator} is for procedure scenario without '
-                        'compare (the yardstick compares by split_dts)')
+    if integrator != EXPLICIT and (procedure not in ('scenario', 'preflight_check')
+                                   or compare):
+        raise SpecError(f'{where}: integrator: {integrator} is for procedures scenario (without '
+                        'compare: the yardstick compares by split_dts) and preflight_check')
     dt_s = _float('dt_s', raw.get('dt_s', DT_S), where)
     if not (dt_s > 0 and math.isfinite(dt_s)):
         raise SpecError(f'{where}: dt_s = {dt_s} must be a positive step [s]')
