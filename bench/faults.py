@@ -62,6 +62,9 @@ def dropped(runs: int) -> dict:
                     r = exc.result
             out['wall_s'].append(round(time.monotonic() - t0, 2))
         st = r.state
+        if r.fault is not None or 'current command' not in r.missing:
+            raise SystemExit(f'dropped: the run ended otherwise than by the dropped controller: '
+                             f'fault {r.fault}, {st["stamp_ns"].size} states')
         data = np.concatenate([st[k].astype(float) for k in (
             'jack_position_m', 'spool_position_m', 'coil_current_a', 'p12_pa',
             'command_age_ticks', 'safe_action')])
