@@ -56,6 +56,8 @@ class Procedure:
     RECORD_DT_S = CONTROLLER_PERIOD_S
     #: Whether the procedure runs in ticks of ``RECORD_DT_S`` (a whole number of steps).
     TICKED = True
+    #: Whether it runs the plant's loop, and so takes the spec's ``integrator``.
+    INTEGRATES = True
 
     def __init__(self, spec):
         self.spec = spec
@@ -109,7 +111,7 @@ class Procedure:
                     s = models.get(name)
                     if s is not None:
                         s.check_params(p)
-                    if cls in (ScenarioProcedure, PreflightProcedure):
+                    if cls.INTEGRATES:
                         integ = spec.integrator if integ == EXPLICIT else integ
                         integrator_substeps(integ, c.dt_s)
                         check_dt(p, c.dt_s, s, integ)
@@ -452,6 +454,7 @@ class ValveTestProcedure(Procedure):
     SIGNALS = ('p12_pa',)
     RECORD_DT_S = 1.0
     TICKED = False
+    INTEGRATES = False   # the map transient is a kernel of its own (physics.maps)
 
     @classmethod
     def metrics(cls, compare=None) -> tuple:

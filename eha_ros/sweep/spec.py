@@ -428,17 +428,17 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
     if integrator not in INTEGRATORS:
         raise SpecError(f'{where}: integrator {integrator!r} is not one of '
                         f'{", ".join(INTEGRATORS)}')
-    if integrator != EXPLICIT and (procedure not in ('scenario', 'preflight_check')
-                                   or compare):
-        raise SpecError(f'{where}: integrator: {integrator} is for procedures scenario (without '
-                        'compare: the yardstick compares by split_dts) and preflight_check')
+    from .procedures import PROCEDURE_CLASSES
+    proc = PROCEDURE_CLASSES[procedure]
+    if integrator != EXPLICIT and (not proc.INTEGRATES or compare):
+        takes = ', '.join(n for n, c in PROCEDURE_CLASSES.items() if c.INTEGRATES)
+        raise SpecError(f'{where}: integrator: {integrator} is for procedures {takes} (not '
+                        'with compare: the yardstick compares by split_dts)')
     dt_s = _float('dt_s', raw.get('dt_s', DT_S), where)
     if not (dt_s > 0 and math.isfinite(dt_s)):
         raise SpecError(f'{where}: dt_s = {dt_s} must be a positive step [s]')
     if compare and dt_s != DT_S:
         raise SpecError(f'{where}: compare: yardstick runs at dt_s = {DT_S:g} s')
-    from .procedures import PROCEDURE_CLASSES
-    proc = PROCEDURE_CLASSES[procedure]
     signals = raw.get('signals') or []
     if not isinstance(signals, list) or not all(isinstance(s, str) for s in signals):
         raise SpecError(f'{where}: signals must be a list of signal names')
