@@ -98,7 +98,9 @@ HEARTBEAT_S = 1.0
 #: After a node other than the plant fails mid-run, how much simulated time the harness goes
 #: on collecting before it stops the rest (s): long enough for the plant's command watchdog
 #: (20 ms by default) to act, so that the result and the recording show the safe action; at
-#: most ``FAULT_GRACE_WALL_S`` of wall time (a lockstep plant waits ``command_wait_s``).
+#: most ``FAULT_GRACE_WALL_S`` of wall time (a lockstep plant waits ``command_wait_s``), and
+#: on until the events the states show were published have arrived
+#: (:meth:`_Collector.events_in_flight`).
 FAULT_GRACE_S = 0.3
 FAULT_GRACE_WALL_S = 5.0
 
@@ -457,6 +459,7 @@ class _Collector:
         self.handshake = Handshake(self.node)
         self._subs = []
         self._last_poll = 0.0
+        self._watchdog_changes = 0
 
         cols = self.state_cols
 
@@ -471,6 +474,8 @@ class _Collector:
             cols['valve_test_point_end'].append(int(msg.valve_test_point_end))
             cols['valve_test_procedure'].append(msg.valve_test_procedure)
             cols['command_age_ticks'].append(msg.command_age_ticks)
+            if msg.safe_action != (cols['safe_action'][-1] if cols['safe_action'] else 0):
+                self._watchdog_changes += 1   # the plant published a trip or a resumption
             cols['safe_action'].append(msg.safe_action)
 
         def on_command(msg, now):
@@ -535,6 +540,22 @@ class _Collector:
             'tick_index': int(msg.tick_index), 'node': msg.node, 'source': msg.source,
             'scheduled_time_s': float(msg.scheduled_time_s),
             'changes': dict(zip(msg.parameter_names, (float(v) for v in msg.parameter_values)))})
+
+    def events_in_flight(self, config) -> int:
+        """How many of the plant's events its states show it has published have not arrived:
+        a watchdog trip or resumption (the states' ``safe_action`` changed) and a scheduled
+        change (a state stamped a tick past its time).  ``/eha/events`` is reliable but apart
+        from the states: a sample lost on a loaded machine comes again only at the writer's
+        next heartbeat (seconds), after the states that followed it."""
+        if not self.n_states:
+            return 0
+        period_ns = round(1e9 / config.rate_hz)
+        last = self.last_stamp_ns
+        scheduled = {t_s for t_s, node, _ in config.all_events()
+                     if node == 'servovalve_plant' and round(t_s * 1e9) + period_ns <= last}
+        seen = [e for e in self.events if e['node'] == 'servovalve_plant']
+        return (max(0, self._watchdog_changes - sum(e['source'] == 'watchdog' for e in seen))
+                + max(0, len(scheduled) - sum(e['source'] == 'schedule' for e in seen)))
 
     @property
     def n_states(self) -> int:
@@ -764,7 +785,9 @@ class GraphRun:
             until_ns = min(self.duration_ns,
                            self.collector.last_stamp_ns + round(FAULT_GRACE_S * 1e9))
             end = time.monotonic() + FAULT_GRACE_WALL_S
-            while time.monotonic() < end and self.collector.last_stamp_ns < until_ns:
+            c = self.collector
+            while time.monotonic() < end and (c.last_stamp_ns < until_ns
+                                              or c.events_in_flight(self.config)):
                 self.executor.spin_once(timeout_sec=_Collector.POLL_S)
                 self.collector.poll(force=True)
         result = self.collector.result(self.config, self.t0)
@@ -861,8 +884,9 @@ class GraphRun:
 
     def _drain(self) -> None:
         """Let the last tick's messages arrive: in lockstep until its command and current
-        command are in; with the health monitor until it is idle (it estimates on a worker
-        thread) and its messages are in. At most 10 s."""
+        command are in; until the plant's events its states announce are in; with the health
+        monitor until it is idle (it estimates on a worker thread) and its messages are in.
+        At most 10 s."""
         collector, config = self.collector, self.config
         end = time.monotonic() + 0.2
         cap = time.monotonic() + 10.0
@@ -873,6 +897,8 @@ class GraphRun:
             if time.monotonic() < end:
                 continue
             if config.mode == 'lockstep' and not collector.final_answers_in(config):
+                continue
+            if collector.events_in_flight(config):
                 continue
             busy = any(getattr(n, '_pending', 0) for n in self.nodes)
             if not config.health or (not busy and len(collector.health) == n_health):

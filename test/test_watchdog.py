@@ -334,3 +334,60 @@ def test_no_node_outlives_a_harness_killed_by_sigkill(ros_env, tmp_path):
             os.killpg(proc.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
+
+
+@pytest.fixture(scope='module')
+def collector():
+    """The harness's collector node in a context of its own (no graph: its callbacks are fed
+    by the test)."""
+    import rclpy
+    from eha_ros.harness import _Collector
+    from eha_ros.isolation import ros_environment
+    with ros_environment() as env:
+        ctx = rclpy.Context()
+        rclpy.init(context=ctx, domain_id=int(env['ROS_DOMAIN_ID']))
+        c = _Collector(ctx)
+        try:
+            yield c
+        finally:
+            c.destroy()
+            rclpy.shutdown(context=ctx)
+
+
+@settings(max_examples=150, deadline=None)
+@given(codes=st.lists(st.sampled_from([0, 0, 0, NULL, SAFE_CODES['hold']]), min_size=1,
+                      max_size=60),
+       arrived=st.floats(0.0, 1.0), event_t=st.lists(st.integers(0, 80), max_size=4))
+def test_the_collector_waits_for_the_events_its_states_say_were_published(
+        collector, codes, arrived, event_t):
+    """For any run of states (the watchdog's flag changing at random) and scheduled plant
+    events: the events in flight are the flag's changes and the events due before the last
+    state, less those that arrived, so the harness waits for an event whose sample the
+    middleware still has to repeat instead of stopping without it."""
+    from eha_ros.msg import ActuatorState, GraphEvent
+    from eha_ros.nodes.common import ns_to_stamp
+    on_state = next(cb for _, cls, _, cb in collector._subs if cls is ActuatorState)
+    for col in collector.state_cols.values():
+        del col[:]
+    collector.events.clear()
+    collector._watchdog_changes = 0
+    times = sorted({t * 1e-3 for t in event_t})
+    config = GraphConfig(events=[(t, 'servovalve_plant', {'clearance_m': 1e-6})
+                                 for t in times])
+    changes, prev = [], 0
+    for k, code in enumerate(codes):
+        msg = ActuatorState(tick=k, safe_action=code)
+        ns_to_stamp(msg.header.stamp, (k + 1) * 1_000_000)
+        on_state(msg, 0.0)
+        if code != prev:
+            changes.append((k * 1_000_000, 'watchdog'))
+        prev = code
+    due = [(round(t * 1e9), 'schedule') for t in times
+           if round(t * 1e9) + 1_000_000 <= len(codes) * 1_000_000]
+    sent = changes + due
+    n_arrived = int(arrived * len(sent))
+    for stamp_ns, source in sent[:n_arrived]:
+        ev = GraphEvent(node='servovalve_plant', source=source)
+        ns_to_stamp(ev.header.stamp, stamp_ns)
+        collector._on_event(ev)
+    assert collector.events_in_flight(config) == len(sent) - n_arrived
