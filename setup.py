@@ -44,6 +44,7 @@ CONSOLE_SCRIPTS = [
     'servovalve_plant = eha_ros.nodes.servovalve_plant:main',
     'health_monitor = eha_ros.nodes.health_monitor:main',
     'recorder = eha_ros.recording.recorder:main',
+    'foxglove_bridge = eha_ros.nodes.foxglove_bridge:main',
     'eha-replay = eha_ros.recording.replay:main',
     'eha-echo = eha_ros.recording.echo:main',
     'eha-compare = eha_ros.recording.compare:main',

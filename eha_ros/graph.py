@@ -34,9 +34,10 @@ controller answers, so a slower reader falls behind by however long it is slower
 from __future__ import annotations
 
 import importlib
-from typing import Dict, Optional
+from typing import Dict, Iterable, Optional
 
-__all__ = ['NAMESPACE', 'TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOPIC_HEALTH',
+__all__ = ['undeclared_message',
+           'NAMESPACE', 'TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOPIC_HEALTH',
            'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'TOPIC_EVENTS', 'TOPIC_HANDSHAKE', 'TOPICS',
            'LATCHED_TOPICS', 'LATCHED_DEPTH', 'is_latched', 'topic_qos', 'RATES_HZ', 'QOS_DEPTH',
            'QOS_RELIABILITY', 'QOS_DURABILITY', 'QOS_HISTORY', 'graph_qos', 'topics_in',
@@ -210,3 +211,20 @@ def message_class(type_name: str) -> type:
         return getattr(importlib.import_module(f'{pkg}.msg'), name)
     except (ImportError, AttributeError) as exc:
         raise ValueError(f'message type {type_name} is not installed ({exc})') from None
+
+
+def undeclared_message(node_name: str, name: str, declared: Iterable[str]) -> str:
+    """One line refusing parameter ``name`` of ``node_name``: the nearest declared names, or
+    for a physical parameter that is not a node parameter, where it is set instead."""
+    import difflib
+
+    from eha_ros.physics.params import SPEC_BY_NAME
+    declared = sorted(declared)
+    text = f'{node_name} has no parameter {name!r}'
+    if name in SPEC_BY_NAME:
+        return (f'{text}: {name} is a physical parameter fixed for a run; set it in the '
+                f'physical parameter file (config/eha_params.yaml form) given as '
+                f'{node_name}.params_file')
+    near = difflib.get_close_matches(name, declared, n=3, cutoff=0.6)
+    return text + (f' (did you mean {", ".join(near)}?)' if near else
+                   f' (it declares {", ".join(declared)})')

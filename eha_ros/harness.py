@@ -113,8 +113,10 @@ class GraphConfig:
     ``controller`` (gains): handed to the node before the run and applied at the first tick
     whose time is at least ``t_s``, in either mode, after the scenario's own events.
     ``record``: an MCAP file the ``recorder`` node writes every graph topic to (it must not
-    exist).  ``node_params``: ``{node: {parameter: value}}`` applied last, over what the fields
-    above set (e.g. from a ROS params file, ``config/graph.yaml``).  ``rt``: the ticking nodes
+    exist).  ``foxglove``: ``[HOST:]PORT`` the ``foxglove_bridge`` node serves every graph
+    topic on, live (:mod:`eha_ros.nodes.foxglove_bridge`).  ``node_params``: ``{node:
+    {parameter: value}}`` applied last, over what the fields above set (e.g. from a ROS
+    params file, ``config/graph.yaml``).  ``rt``: the ticking nodes
     get the real-time settings :data:`eha_ros.realtime.RT_DEFAULTS`, the listeners (recorder,
     health monitor, and the harness's own process for the run)
     :data:`eha_ros.realtime.RT_LISTENER_DEFAULTS`.  The graph starts when
@@ -146,6 +148,7 @@ class GraphConfig:
     rt: bool = False
     handshake_timeout_s: float = 60.0
     trace: str = ''
+    foxglove: str = ''
 
     def resolved_duration(self) -> float:
         if self.duration_s is not None:
@@ -160,6 +163,8 @@ class GraphConfig:
             out.append('health_monitor')
         if self.record:
             out.append('recorder')
+        if self.foxglove:
+            out.append('foxglove_bridge')
         return out + [COLLECTOR]
 
     def all_events(self) -> list:
@@ -231,6 +236,13 @@ class GraphConfig:
             for node in self.traced_nodes(out):
                 if self.mode == 'realtime':
                     out[node]['executor_priority'] = int(RT_LISTENER_DEFAULTS.thread_priority)
+        if self.foxglove:  # at normal priority (not --rt's): a viewer never competes with it
+            from eha_ros.foxglove.core import parse_endpoint
+            try:
+                host, port = parse_endpoint(self.foxglove)
+            except ValueError as exc:
+                raise GraphConfigError(f'foxglove: {exc}') from None
+            out['foxglove_bridge'] = dict(host=host, port=port, mode=self.mode)
         for node, values in self.node_params.items():
             if node not in out:
                 known = ', '.join(out)
@@ -302,7 +314,7 @@ def declared_parameters() -> dict:
 
 
 def _check_declared(params: dict) -> None:
-    from eha_ros.nodes.common import undeclared_message
+    from eha_ros.graph import undeclared_message
     declared = declared_parameters()
     for node, values in params.items():
         for name in values:
@@ -753,14 +765,15 @@ class GraphRun:
                                                              + delay * 1e9)
 
     def _launch(self, name: str) -> None:
-        """Start ``name`` in this process or (the recorder always) as its console script."""
+        """Start ``name`` in this process or (the recorder and the bridge always) as its
+        console script."""
         from rclpy.parameter import Parameter
 
         from eha_ros.nodes.common import refuse_undeclared
         if name == COLLECTOR:
             self.collector = _Collector(self.context)
             self.executor.add_node(self.collector.node)
-        elif self.processes or name == 'recorder':
+        elif self.processes or name in ('recorder', 'foxglove_bridge'):
             cmd = [str(Path(sys.executable).parent / name), '--ros-args'] + [
                 a for k, v in self.params[name].items() for a in ('-p', f'{k}:={_ros_arg(v)}')]
             out = open(self.log_dir / f'{name}.log', 'wb')

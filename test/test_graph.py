@@ -53,7 +53,7 @@ def test_graph_yaml_holds_every_declared_parameter_and_default(ros_env):
     assert text == defaults_yaml()
     data = yaml.safe_load(text)
     defaults = node_defaults()
-    assert {k.strip('/') for k in data} == set(graph.NODES) | {'recorder'}
+    assert {k.strip('/') for k in data} == set(graph.NODES) | {'recorder', 'foxglove_bridge'}
     for node, values in defaults.items():
         assert data[f'/{node}']['ros__parameters'] == values, node
         for name, value in values.items():  # floats stay floats: ROS types by the YAML form

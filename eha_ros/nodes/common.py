@@ -20,6 +20,7 @@ from rclpy.node import Node
 from eha_ros.physics import ParameterError
 from eha_ros.physics.params import SPEC_BY_NAME
 
+from eha_ros.graph import undeclared_message  # noqa: F401 (re-exported)
 from eha_ros.graph import (MODES, TIMING_SUFFIX, TOPIC_CLOCK, TOPIC_COMMAND, TOPIC_DIAGNOSTICS,
                            TOPIC_HEALTH, TOPIC_SERVOVALVE, TOPIC_STATE, graph_qos)
 
@@ -373,13 +374,15 @@ class EventChannel:
         self._cls = GraphEvent
         self.pub = node.create_publisher(GraphEvent, TOPIC_EVENTS, topic_qos(TOPIC_EVENTS))
 
-    def publish(self, stamp_ns: int, source: str, scheduled_s: float, changes: dict) -> None:
-        """Publish that ``changes`` took effect at the tick stamped ``stamp_ns``."""
+    def publish(self, stamp_ns: int, source: str, scheduled_s: float, changes: dict,
+                node: str | None = None) -> None:
+        """Publish that ``changes`` took effect at the tick stamped ``stamp_ns`` (in ``node``:
+        default this channel's node)."""
         msg = self._cls()
         ns_to_stamp(msg.header.stamp, stamp_ns)
         msg.header.frame_id = 'jack'
         msg.tick_index = stamp_ns // self.period_ns
-        msg.node = self.node.get_name()
+        msg.node = node or self.node.get_name()
         msg.source = source
         msg.scheduled_time_s = float(scheduled_s)
         msg.parameter_names = list(changes)
@@ -436,21 +439,6 @@ def make_executor(context=None):
 
 #: Parameters rclpy itself reads from overrides without a declaration (QoS overrides).
 _RCLPY_PREFIXES = ('qos_overrides.',)
-
-
-def undeclared_message(node_name: str, name: str, declared: Iterable[str]) -> str:
-    """One line refusing parameter ``name`` of ``node_name``: the nearest declared names, or
-    for a physical parameter that is not a node parameter, where it is set instead."""
-    import difflib
-    declared = sorted(declared)
-    text = f'{node_name} has no parameter {name!r}'
-    if name in SPEC_BY_NAME:
-        return (f'{text}: {name} is a physical parameter fixed for a run; set it in the '
-                f'physical parameter file (config/eha_params.yaml form) given as '
-                f'{node_name}.params_file')
-    near = difflib.get_close_matches(name, declared, n=3, cutoff=0.6)
-    return text + (f' (did you mean {", ".join(near)}?)' if near else
-                   f' (it declares {", ".join(declared)})')
 
 
 def refuse_undeclared(node: Node) -> None:
@@ -656,7 +644,7 @@ def run_node(factory: Callable[[], Node], args=None) -> int:
                 return 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (ParameterError, ValueError, ParameterException) as exc:
+    except (ParameterError, ValueError, ParameterException, OSError) as exc:
         text = ' '.join(str(exc).split())
         print(f'{getattr(factory, "node_name", "eha_ros")}: error: {text}', file=sys.stderr)
         return 2

@@ -75,7 +75,7 @@ PROMOTED = {('command_generator', 'scenario'): 'scenario', ('servovalve_plant', 
 RCLPY_OWN = frozenset(('start_type_description_service',))
 
 #: Nodes eha-graph starts (the recorder too, with ``--record``).
-GRAPH_NODES = graph.NODES + ('recorder',)
+GRAPH_NODES = graph.NODES + ('recorder', 'foxglove_bridge')
 
 
 class UsageError(ValueError):
@@ -169,6 +169,7 @@ def node_defaults(descriptions: bool = False) -> dict:
     from eha_ros.nodes.controller import Controller
     from eha_ros.nodes.health_monitor import HealthMonitor
     from eha_ros.nodes.servovalve_plant import ServovalvePlant
+    from eha_ros.nodes.foxglove_bridge import FoxgloveBridge
     from eha_ros.recording.recorder import declare_parameters
 
     def recorder(**kwargs):  # its declarations alone: a Recorder would create its file
@@ -177,7 +178,7 @@ def node_defaults(descriptions: bool = False) -> dict:
         return node
     classes = {'command_generator': CommandGenerator, 'controller': Controller,
                'servovalve_plant': ServovalvePlant, 'health_monitor': HealthMonitor,
-               'recorder': recorder}
+               'recorder': recorder, 'foxglove_bridge': FoxgloveBridge}
     out = {}
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=0)
@@ -290,11 +291,14 @@ def build_config(args):
                          health=args.health,
                          record=args.record or '', events=parse_events(args.event),
                          node_params=node_params, rt=args.rt, trace=args.trace or '',
+                         foxglove=args.foxglove or '',
                          handshake_timeout_s=min(float(args.timeout), 600.0))
     if not args.health:  # a params file's health monitor section has nothing to apply to
         config.node_params.pop('health_monitor', None)
     if not args.record:
         config.node_params.pop('recorder', None)
+    if not args.foxglove:
+        config.node_params.pop('foxglove_bridge', None)
     try:
         config.node_parameters()  # refuses unknown nodes, parameters and event targets
         config.with_trace_files(config.node_parameters(), Path('.'))  # refuses a lockstep trace
@@ -455,6 +459,9 @@ def main(argv=None) -> int:
     ap.add_argument('--mode', help='realtime or lockstep (default lockstep)')
     ap.add_argument('--health', action='store_true', help='start the health monitor')
     ap.add_argument('--record', metavar='FILE.mcap', help='record every graph topic to FILE')
+    ap.add_argument('--foxglove', nargs='?', const='127.0.0.1:8765', metavar='[HOST:]PORT',
+                    help='serve every graph topic live to Foxglove (foxglove_bridge; default '
+                         '127.0.0.1:8765): Open connection, ws://localhost:8765')
     ap.add_argument('--set', action='append', metavar='NODE.NAME=VALUE',
                     help='set a node parameter (repeatable), e.g. '
                          'servovalve_plant.radial_clearance_m=4e-6')
