@@ -2,7 +2,8 @@
 #
 #   make demo    install, then run the main job: the test campaign through the ROS graph
 #   make test    install (with requirements-bench.txt: the suite runs every bench in smoke
-#                mode), lint (flake8), then run the test suite against the installed package
+#                mode), the Foxglove test client (npm ci; Node >= 18), lint (flake8), then
+#                run the test suite against the installed package
 #   make install create .venv, install requirements.txt and the package (non-editable)
 #   make bench   install, plus requirements-bench.txt, then run the benchmarks
 #   make clean   remove .venv and build outputs
@@ -18,6 +19,10 @@ TEST_WORKERS ?= 2
 BENCH ?= bench/plant_rtf.py
 BENCH_ARGS ?=
 
+# The Node client the live-view tests drive (Foxglove's own libraries, pinned by its lock file).
+NODE_CLIENT := test/foxglove_client
+NPM ?= npm
+
 BIN := $(VENV)/bin
 STAMPS := $(VENV)/.stamps
 PIP := $(BIN)/pip --disable-pip-version-check
@@ -26,7 +31,7 @@ PACKAGE_SOURCES := setup.py setup.cfg pyproject.toml package.xml MANIFEST.in \
 	$(shell find eha_ros msg rosidl_build config resource -not -path '*/__pycache__*' \
 		-not -name '*.pyc' 2>/dev/null)
 
-.PHONY: all install demo test lint bench clean
+.PHONY: all install node-client demo test lint bench clean
 
 all: test
 
@@ -47,9 +52,15 @@ $(STAMPS)/package: $(STAMPS)/requirements $(PACKAGE_SOURCES)
 
 install: $(STAMPS)/package
 
+# npm ci writes node_modules/.package-lock.json: newer than the lock file once installed.
+$(NODE_CLIENT)/node_modules/.package-lock.json: $(NODE_CLIENT)/package-lock.json $(NODE_CLIENT)/package.json
+	cd $(NODE_CLIENT) && $(NPM) ci --no-audit --no-fund
+
+node-client: $(NODE_CLIENT)/node_modules/.package-lock.json
+
 # .venv/bin/pytest (not `python -m pytest`, which would put the source folder on sys.path):
 # the tests import the installed eha_ros, which carries the generated eha_ros.msg.
-test: install $(STAMPS)/requirements-bench lint
+test: install $(STAMPS)/requirements-bench node-client lint
 	$(BIN)/pytest -n $(TEST_WORKERS) --dist worksteal $(PYTEST_ARGS)
 
 # flake8 (configured in setup.cfg) over the package, the tests, the benches and the build.
@@ -61,9 +72,9 @@ lint: $(STAMPS)/requirements
 demo: install
 	$(BIN)/eha-campaign
 
-bench: install $(STAMPS)/requirements-bench
+bench: install $(STAMPS)/requirements-bench node-client
 	$(BIN)/python $(BENCH) $(BENCH_ARGS)
 
 clean:
-	rm -rf $(VENV) build dist *.egg-info .pytest_cache
+	rm -rf $(VENV) build dist *.egg-info .pytest_cache $(NODE_CLIENT)/node_modules
 	find . -path ./.git -prune -o -name __pycache__ -type d -prune -exec rm -rf {} +

@@ -242,7 +242,9 @@ class GraphConfig:
                 host, port = parse_endpoint(self.foxglove)
             except ValueError as exc:
                 raise GraphConfigError(f'foxglove: {exc}') from None
-            out['foxglove_bridge'] = dict(host=host, port=port, mode=self.mode)
+            from eha_ros.graph import NODES
+            out['foxglove_bridge'] = dict(host=host, port=port, mode=self.mode,
+                                          parameter_nodes=[n for n in out if n in NODES])
         for node, values in self.node_params.items():
             if node not in out:
                 known = ', '.join(out)

@@ -55,6 +55,11 @@ _CLIENT_OPS = {
 }
 
 
+#: How long a parameter request waits for the nodes' parameter lists (s): a client that
+#: connects as the graph starts asks before every node's services are up.
+PARAMETER_WAIT_S = 5.0
+
+
 class ProtocolError(ValueError):
     """A client message the protocol does not allow (one line, sent back as an error
     status)."""
@@ -309,6 +314,7 @@ class _Client:
         self.subs: Dict[int, int] = {}        # channel id -> subscription id
         self.params: set = set()              # parameter update subscriptions
         self.event = asyncio.Event()
+        self.sending = 0                      # messages taken from the queue, not yet sent
         self.reported_drops = 0
         self.last_drop_status = 0.0
         self.remote = ''
@@ -389,20 +395,43 @@ class LiveServer:
                                    max_size=1 << 20, ping_interval=None)
         self.port = self._server.sockets[0].getsockname()[1]
 
-    def stop(self) -> None:
+    def stop(self, flush_s: float = 5.0) -> Dict[int, int]:
+        """Stop serving: first let every connected client's queue drain (at most ``flush_s``),
+        so that a client sees the run to its last message, then close each connection (code
+        1001, going away).  Returns ``{client id: messages left unsent}`` for the clients
+        whose queue did not drain in time (empty when every message was sent)."""
         if self._loop is None or self._thread is None:
-            return
+            return {}
+        left: Dict[int, int] = {}
 
         async def close():
-            self._server.close()
+            self._server.close(close_connections=False)   # no new clients
+            with self._lock:
+                clients = list(self.clients.values())
+            for c in clients:   # the final drop count, however recent the last one was
+                self._tell_drops(c, force=True)
+            deadline = time.monotonic() + flush_s
+            while time.monotonic() < deadline:
+                with self._lock:
+                    busy = [c for c in self.clients.values() if len(c.queue) or c.sending]
+                if not busy:
+                    break
+                await asyncio.sleep(0.01)
+            with self._lock:
+                for c in self.clients.values():
+                    if len(c.queue) or c.sending:
+                        left[c.id] = len(c.queue) + c.sending
+            for c in list(self.clients.values()):
+                await c.ws.close(1001, 'server stopping')
             await self._server.wait_closed()
         try:
-            asyncio.run_coroutine_threadsafe(close(), self._loop).result(5.0)
+            asyncio.run_coroutine_threadsafe(close(), self._loop).result(flush_s + 5.0)
         except Exception:
             pass
         self._loop.call_soon_threadsafe(self._loop.stop)
         self._thread.join(5.0)
         self._thread = None
+        return left
 
     # producers (any thread) ------------------------------------------------------------------
     def publish(self, source: str, payload: bytes, log_time_ns: Optional[int] = None) -> None:
@@ -515,14 +544,19 @@ class LiveServer:
                 batch = q.take()
                 if not batch:
                     break
+                client.sending = len(batch)
                 for _, item in batch:
                     await client.ws.send(item)
+                    client.sending -= 1
                 self._tell_drops(client)
 
-    def _tell_drops(self, client: _Client) -> None:
+    def _tell_drops(self, client: _Client, force: bool = False) -> None:
+        """A warning status with the client's drops per topic, when it has new ones: at most
+        one per :data:`DROP_STATUS_PERIOD_S`, unless ``force`` (the last one, at stop)."""
         total = client.queue.total_dropped
         now = time.monotonic()
-        if total == client.reported_drops or now - client.last_drop_status < DROP_STATUS_PERIOD_S:
+        if total == client.reported_drops or (
+                not force and now - client.last_drop_status < DROP_STATUS_PERIOD_S):
             return
         client.reported_drops, client.last_drop_status = total, now
         per = ', '.join(f'{t}: {n}' for t, n in sorted(client.queue.dropped.items()))
@@ -573,8 +607,11 @@ class LiveServer:
         if 'id' in msg:
             reply['id'] = msg['id']
         if op == 'getParameters':
-            reply['parameters'] = self.parameters.get(msg['parameterNames'])
-            client.queue.put_control(json.dumps(reply))
+            async def answer():
+                await self._parameters_listed(client)
+                reply['parameters'] = self.parameters.get(msg['parameterNames'])
+                client.queue.put_control(json.dumps(reply))
+            asyncio.ensure_future(answer())
             return
 
         def done(values, refusals):
@@ -583,7 +620,27 @@ class LiveServer:
                     {'op': 'status', 'level': ERROR, 'message': line}))
             client.queue.put_control(json.dumps(dict(reply, parameters=list(values))))
             self.publish_parameter_values(values)
-        self.parameters.set(msg['parameters'], done)
+
+        async def apply():
+            await self._parameters_listed(client)
+            self.parameters.set(msg['parameters'], done)
+        asyncio.ensure_future(apply())
+
+    async def _parameters_listed(self, client: _Client) -> None:
+        """Wait (at most :data:`PARAMETER_WAIT_S`) until the provider has listed every
+        node's parameters (its optional ``unlisted() -> [node]``); a node still unlisted then
+        is told to the client as a warning, never left out quietly."""
+        unlisted = getattr(self.parameters, 'unlisted', lambda: [])
+        deadline = time.monotonic() + PARAMETER_WAIT_S
+        while unlisted() and time.monotonic() < deadline:
+            await asyncio.sleep(0.02)
+        missing = unlisted()
+        if missing:
+            client.queue.put_control(json.dumps({
+                'op': 'status', 'level': WARNING, 'id': 'parameters-unlisted',
+                'message': f'parameters of {", ".join(missing)} are not listed: their '
+                           f'parameter services did not answer within {PARAMETER_WAIT_S:g} s '
+                           f'(not running?)'}))
 
 
 def _stats(client: _Client, connected: bool) -> dict:

@@ -111,6 +111,11 @@ class _Parameters:
         with self._lock:
             self.values[node] = values
 
+    def unlisted(self) -> list:
+        """The nodes whose parameters are not listed yet."""
+        with self._lock:
+            return [n for n in self.clients if n not in self.values]
+
     @property
     def declared(self) -> dict:
         with self._lock:
@@ -244,13 +249,15 @@ class FoxgloveBridge(Node):
         self.server = LiveServer(self.table, host, port, depth, self.parameters,
                                  time=mode == 'lockstep', send_buffer_b=send_buffer,
                                  metadata={'mode': mode})
-        self._subs = []
+        self._subs, self._entries = [], []
         for topic, type_name in served.items():
             cls = graph.message_class(type_name)
             entry: dict = {}
-            entry['sub'] = self.create_subscription(cls, topic, self._forward(topic, cls, entry),
+            entry['forward'] = self._forward(topic, cls, entry)
+            entry['sub'] = self.create_subscription(cls, topic, entry['forward'],
                                                     graph.topic_qos(topic), raw=True)
             self._subs.append((topic, entry['sub']))
+            self._entries.append((cls, entry))
         self.handshake = None
         self.diagnostics = advertise(self, DiagnosticArray, graph.TOPIC_DIAGNOSTICS)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -301,6 +308,8 @@ class FoxgloveBridge(Node):
                 self.handshake = Handshake(self)
                 for topic, sub in self._subs:
                     self.handshake.watch(sub, topic)
+                self.handshake.watch(self.diagnostics, graph.TOPIC_DIAGNOSTICS)
+                self.handshake.watch(self.events.pub, graph.TOPIC_EVENTS)
 
     def announce(self, node: str, changes: dict) -> None:
         """A live change the node does not publish itself, on ``/eha/events``."""
@@ -312,6 +321,10 @@ class FoxgloveBridge(Node):
             self.events.publish(self._last_state_ns, 'live', math.nan, numeric, node=node)
 
     def _report(self) -> None:
+        """The bridge's own status on ``/diagnostics``, from the graph's start on (before it,
+        a listener not yet matched would see a gap)."""
+        if self.handshake is None or not self.handshake.started:
+            return
         stats = self.server.client_stats()
         dropped = sum(sum(s['dropped'].values()) for s in stats)
         st = DiagnosticStatus(name=f'{self.get_name()}: clients',
@@ -334,8 +347,23 @@ class FoxgloveBridge(Node):
         self.diagnostics.publish(msg)
 
     def close(self) -> None:
-        self._report()
-        self.server.stop()
+        """Forward what the subscriptions still hold, let each client's queue drain (at most
+        5 s), then close the connections; a message left unsent is logged, never silent."""
+        for cls, entry in self._entries:
+            try:
+                with entry['sub'].handle:
+                    taken = entry['sub'].handle.take_message(cls, True)
+            except Exception:  # the subscription is gone (the context shut down)
+                continue
+            if taken is not None:
+                entry['forward'](taken[0])
+        try:
+            self._report()
+        except Exception:  # the context is already shut down (SIGINT): nothing to publish on
+            pass
+        for cid, n in sorted(self.server.stop().items()):
+            self.get_logger().warning(f'client {cid}: {n} message(s) still queued when the '
+                                      f'bridge stopped were not sent (it read too slowly)')
 
 
 def _serving(**kwargs) -> FoxgloveBridge:

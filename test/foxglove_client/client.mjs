@@ -21,6 +21,8 @@ const USAGE = `usage: node client.mjs --url ws://HOST:PORT [options]
   --connect-after-s D         wait D seconds before connecting
   --pause-after-s A --pause-s P
                               A s after the connection opens, stop reading the socket for P s
+  --pause-from-topic T        count A from the first message of topic T instead (a run whose
+                              start the server holds back until the client subscribed)
   --get-params all|N1,N2,...  getParameters (id "get-params") after serverInfo
   --set NAME=VALUE            setParameters (id "set-params"); repeatable; VALUE parsed as JSON
                               when possible, else a string; NAME:float64=V etc. sets the type
@@ -51,6 +53,7 @@ try {
       out: { type: "string" },
       "pause-after-s": { type: "string" },
       "pause-s": { type: "string" },
+      "pause-from-topic": { type: "string" },
       "connect-after-s": { type: "string" },
       "get-params": { type: "string" },
       set: { type: "string", multiple: true, default: [] },
@@ -289,6 +292,7 @@ let closed = false;
 let stopping = false;
 let stopReason;
 let paused = false;
+let pauseScheduled = false;
 const timers = [];
 
 function later(seconds, fn) {
@@ -315,7 +319,9 @@ function connect() {
   client.on("open", () => {
     opened = true;
     out.write({ type: "open", url: args.url, protocol: ws.protocol });
-    if (pauseAfterS !== undefined) later(pauseAfterS, pauseReading);
+    if (pauseAfterS !== undefined && args["pause-from-topic"] === undefined) {
+      later(pauseAfterS, pauseReading);
+    }
   });
 
   client.on("error", (err) => {
@@ -411,6 +417,10 @@ function connect() {
         error: String(err?.message ?? err),
       });
       return;
+    }
+    if (pauseAfterS !== undefined && topic === args["pause-from-topic"] && !pauseScheduled) {
+      pauseScheduled = true;
+      later(pauseAfterS, pauseReading);
     }
     out.write({
       type: "message",
