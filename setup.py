@@ -167,6 +167,8 @@ setup(
         (os.path.join('share', PACKAGE, 'config'), _relative(os.path.join('config', '*.yaml'))),
         (os.path.join('share', PACKAGE, 'config', 'sweeps'),
          _relative(os.path.join('config', 'sweeps', '*.yaml'))),
+        (os.path.join('share', PACKAGE, 'config', 'foxglove'),
+         _relative(os.path.join('config', 'foxglove', '*.json'))),
     ],
     # Installed by requirements.txt (pip) or by the ROS distribution (colcon/rosdep).
     install_requires=[],

@@ -92,9 +92,12 @@ class _CpuSampler:
 
 
 def realtime(seconds, processes, health=False, record=False, rt=False, trace=True,
-             node_params=None):
+             node_params=None, foxglove='', on_start=None):
+    """One realtime run; ``foxglove``: ``[HOST:]PORT`` of a bridge beside it
+    (``bench/foxglove.py``), ``on_start(pids)`` called beside the CPU sampler's."""
     cfg = GraphConfig(scenario='sine_0p1_5pi', mode='realtime', duration_s=seconds,
-                      health=health, rt=rt, node_params=dict(node_params or {}))
+                      health=health, rt=rt, node_params=dict(node_params or {}),
+                      foxglove=foxglove)
     load_before = os.getloadavg()
     sampler = _CpuSampler(skip_s=0.0)
     with tempfile.TemporaryDirectory() as tmp, ros_environment() as env:
@@ -103,7 +106,12 @@ def realtime(seconds, processes, health=False, record=False, rt=False, trace=Tru
         if trace:
             cfg.trace = str(Path(tmp) / 'trace.mcap')
         cpu0, t0 = time.process_time(), time.monotonic()
-        r = run_graph(cfg, processes=processes, env=env, timeout_s=60, on_start=sampler.start)
+
+        def started(pids):
+            sampler.start(pids)
+            if on_start is not None:
+                on_start(pids)
+        r = run_graph(cfg, processes=processes, env=env, timeout_s=60, on_start=started)
         own_cpu = (time.process_time() - cpu0) / (time.monotonic() - t0)
         recording = None
         if record:
@@ -161,6 +169,7 @@ def realtime(seconds, processes, health=False, record=False, rt=False, trace=Tru
            'cores': os.cpu_count()}
     if recording is not None:
         out['recording'] = recording
+    out['result'] = r   # for a caller in this process; not printed
     if r.trace is not None:
         out['late_causes'] = {n: t.get('shares', t) for n, t in r.trace.items()}
     return out
@@ -259,9 +268,10 @@ def main():
             args.models = 'hf,lut'
     if args.case:  # one realtime measurement (a child of the run below)
         layout, rt = args.case.split(':')
-        print(json.dumps(realtime(args.realtime_s, layout == 'processes', args.health,
-                                  args.record, rt == '1', not args.no_trace,
-                                  _node_params(args.set))))
+        case = realtime(args.realtime_s, layout == 'processes', args.health, args.record,
+                        rt == '1', not args.no_trace, _node_params(args.set))
+        case.pop('result')
+        print(json.dumps(case))
         return
     models = args.models.split(',')
     out = {'benchmark': 'graph', 'smoke': args.smoke,
