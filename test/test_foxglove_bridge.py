@@ -237,8 +237,13 @@ def test_a_late_joiner_gets_the_latched_history_then_every_state(ros_env, tmp_pa
     (event,) = [e for e in result.events if e['source'] == 'schedule']
     got = messages_by_topic(lines)
     events = [m['data'] for m in got[graph.TOPIC_EVENTS]]
-    assert [e['tick_index'] for e in events] == [event['tick_index']]
-    assert events[0]['parameter_names'] == ['radial_clearance_m']
+    # the scheduled change, latched, exactly once; anything else on /eha/events (a realtime
+    # watchdog's trips and resumptions under load) is what the graph published too
+    scheduled = [e for e in events if e['source'] == 'schedule']
+    assert [e['tick_index'] for e in scheduled] == [event['tick_index']]
+    assert scheduled[0]['parameter_names'] == ['radial_clearance_m']
+    published = {(e['source'], e['tick_index']) for e in result.events}
+    assert {(e['source'], e['tick_index']) for e in events} <= published
     assert got[graph.TOPIC_HANDSHAKE], 'no latched handshake report reached the late client'
     states = states_of(lines)
     ticks = [s['tick'] for s in states]   # plant integration steps
