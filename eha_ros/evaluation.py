@@ -28,7 +28,7 @@ above 1 us against hf at 1 us with the same bounds, so the largest step at which
 stable and accurate is measured, not assumed (:func:`largest_steps`).
 
 Integrators (``split_dts``): hf and the dynamic surrogates also by the ``split`` integrator
-(:func:`eha_ros.physics.loop.run`) at each of these steps, keys ``'<model>@split@dt=<step>'``,
+(:func:`eha_ros.physics.loop.advance`) at each of these steps, keys ``'<model>@split@dt=<step>'``,
 against the same hf at 1 us (explicit) with the same bounds; :func:`largest_steps` gives the
 largest step of each (model, integrator).
 

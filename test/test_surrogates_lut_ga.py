@@ -377,10 +377,13 @@ def local_kernel(data, xs, q, lap, clr):  # a kernel numba can only pickle by va
     return data[0][0] * xs
 
 Plant().advance(0.0, 10)
-Plant(fluid=load_surrogate('lut')).advance(0.0, 10)
+shipped = load_surrogate('lut')
+Plant(fluid=shipped).advance(0.0, 10)
 s = FluidSurrogate('local', local_kernel, (__import__('numpy').ones(1),), {})
 Plant(fluid=s).advance(0.0, 10)
 print(s.p12(1.0, 0.0, 0.0, 1e-6))
+form = shipped.loops[0]
+print(sum(form.stats.cache_hits.values()), sum(form.stats.cache_misses.values()))
 """
 
 
@@ -388,13 +391,17 @@ def test_kernels_passed_as_arguments_never_reach_the_disk_cache(tmp_path):
     """Fresh processes, one after the other, each running the plant with the hf block, a
     shipped surrogate and a kernel of their own: every one succeeds (a numba function typed
     by its object in a disk-cache key breaks the cache for later processes); the loop's forms
-    that take a kernel leave no cache entry, and its high-fidelity forms do."""
+    that take a kernel leave no cache entry, its high-fidelity forms do, and the shipped
+    surrogate's own form is loaded from the cache by the second process, not compiled."""
     import eha_ros.physics.loop as loop
-    for _ in range(2):
+    for k in range(2):
         out = subprocess.run([sys.executable, '-c', _FRESH_PROCESS], capture_output=True,
                              text=True, cwd=tmp_path, timeout=300)
         assert out.returncode == 0, out.stderr[-2000:]
-        assert out.stdout.strip() == '1.0'
+        p12, hits = out.stdout.strip().splitlines()
+        assert p12 == '1.0'
+        if k == 1:
+            assert hits == '1 0', 'the shipped form was compiled again (hits, misses: ' + hits
     cache = Path(loop.__file__).parent / '__pycache__'
     assert not list(cache.glob('loop.*kernel-*')), sorted(p.name for p in cache.iterdir())
     assert list(cache.glob('loop._run_hf-*.nbi')), sorted(p.name for p in cache.iterdir())

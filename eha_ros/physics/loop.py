@@ -1,6 +1,7 @@
-"""The plant's fixed-step kernel: ``run`` advances the state by a number of steps, open or
-closed loop, with the high-fidelity fluid block or a surrogate's kernel; :class:`FluidBlock`,
-what a surrogate provides to be that kernel.
+"""The plant's fixed-step kernel: :func:`advance` moves the state on by a number of steps, open
+or closed loop, with the high-fidelity fluid block or a surrogate's kernel, and :func:`run` /
+:func:`run_split` call its compiled forms; :class:`FluidBlock`, what a surrogate provides to be
+that kernel.
 
 Named ``loop`` for the time loop it holds (and the closed loop it may run): its arguments are
 grouped in named tuples (numba tuples): :class:`Clock` (which steps, of what length, under
@@ -29,7 +30,8 @@ from .valve import (chamber_step, chamber_step_implicit, net_flow, net_flow_cond
                     valve_coefficients, valve_constants)
 
 __all__ = ['Clock', 'ClosedLoop', 'OPEN_LOOP', 'P12', 'CHAMBER_FLOWS', 'FluidBlock',
-           'fluid_kernels', 'run', 'run_split', 'pid', 'record', 'SimulationDiverged', 'diverged']
+           'fluid_kernels', 'advance', 'run', 'run_split', 'pid', 'record',
+           'SimulationDiverged', 'diverged']
 
 # state entries watched for divergence, in the order they are reported
 _WATCHED = (S_XF, S_VF, S_XS, S_P1T, S_P2T, S_XJ, S_VJ)
@@ -72,7 +74,11 @@ CHAMBER_FLOWS = 'chamber_flows'
 
 @runtime_checkable
 class FluidBlock(Protocol):
-    """A surrogate of the fluid-dynamic block, as the plant calls it."""
+    """A surrogate of the fluid-dynamic block, as the plant calls it.
+
+    Optionally also ``loops``: its own ``(explicit, split)`` compiled forms of the loop
+    (:func:`fluid_kernels`), so that the plant's kernel with it loads from the disk cache.
+    """
 
     name: str
     #: the numba kernel, called inside the plant's loop (signature after ``kernel_output``)
@@ -92,11 +98,14 @@ class FluidBlock(Protocol):
 
 
 def fluid_kernels(fluid: FluidBlock | None, p: PlantParams) -> tuple:
-    """``(p12_fn, flows_fn, data)`` of :func:`run` for ``fluid`` at the parameters ``p``: its
-    kernel in the place its ``kernel_output`` names (``None`` in the other) and the kernel's
-    data; ``(None, None, ())`` for the high-fidelity block (``fluid`` ``None``)."""
+    """``(p12_fn, flows_fn, data, loops)`` of :func:`run` for ``fluid`` at the parameters
+    ``p``: its kernel in the place its ``kernel_output`` names (``None`` in the other), the
+    kernel's data and the block's own compiled forms of the loop, its optional attribute
+    ``loops`` (``(explicit, split)`` forms of :func:`advance` with that kernel as a global,
+    disk-cacheable; ``None``: the forms that take the kernel as an argument);
+    ``(None, None, (), None)`` for the high-fidelity block (``fluid`` ``None``)."""
     if fluid is None:
-        return None, None, ()
+        return None, None, (), None
     if not isinstance(fluid, FluidBlock) or fluid.kernel_output not in (P12, CHAMBER_FLOWS):
         raise ParameterError(f'fluid must be a FluidBlock with kernel_output {P12!r} or '
                              f'{CHAMBER_FLOWS!r}')
@@ -104,9 +113,13 @@ def fluid_kernels(fluid: FluidBlock | None, p: PlantParams) -> tuple:
         data = tuple(fluid.prepare(p))
     except ValueError as exc:  # a surrogate refusing these parameters
         raise ParameterError(str(exc)) from None
+    loops = getattr(fluid, 'loops', None)
+    if loops is not None and (len(loops) != 2 or not all(callable(f) for f in loops)):
+        raise ParameterError(f'fluid {fluid.name!r}: loops must be None or two compiled '
+                             'forms (explicit, split)')
     if fluid.kernel_output == P12:
-        return fluid.kernel, None, data
-    return None, fluid.kernel, data
+        return fluid.kernel, None, data, loops
+    return None, fluid.kernel, data, loops
 
 
 @njit(cache=True, inline='always')
@@ -251,7 +264,7 @@ def _constants(p):
 
 
 @njit(inline='always')
-def _run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, split):
+def advance(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, split):
     """Advance the plant state ``s`` (in place) by ``clock.n_steps`` steps of ``clock.dt``.
 
     Fluid block (:func:`fluid_kernels`): the high-fidelity one when both kernels are
@@ -291,12 +304,15 @@ def _run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, split):
     ``(status, steps done, rows recorded, i_cmd)``: status 0, or 1 + the index into
     ``_WATCHED`` of the first state that diverged.
 
-    Compiled in four forms (below), explicit or split with ``split`` a constant of each.  The
-    high-fidelity forms (both kernels ``None``) are cached on disk, so a process loads them
-    instead of compiling them (tens of seconds: the blocks are inlined for speed).  A
-    surrogate's forms are not: a kernel (a numba function passed in an argument) is typed by
-    its object, not its code, so a cache entry keyed by it never matches in another process
-    and, once that object is gone, breaks the saving of the cache index for every later entry.
+    Inlined into its compiled forms, explicit or split with ``split`` a constant of each.  The
+    high-fidelity forms (both kernels ``None``, below) are cached on disk, so a process loads
+    them instead of compiling them (tens of seconds: the blocks are inlined for speed).  A
+    kernel passed in an argument is typed by its object, not its code, so a cache entry keyed
+    by it never matches in another process and, once that object is gone, breaks the saving
+    of the cache index for every later entry: such a kernel's forms (:func:`run`'s fallback)
+    are compiled once per process, uncached.  A surrogate that names its kernel as a global
+    of a form of its own (``loops``, :func:`fluid_kernels`; the shipped kinds', in
+    :data:`eha_ros.surrogates.base.Forms`) is cached as the high-fidelity block is.
     """
     # everything out of the tuples once, before the loop (an array taken from a tuple is
     # reference-counted at each access)
@@ -360,40 +376,45 @@ def _run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, split):
     return status, done, row, i_cmd
 
 
-# The kernel in four compiled forms: explicit or split (``split`` a constant of each, so the
-# explicit kernel holds no branch of the other), the high-fidelity block (cached on disk:
-# every argument is typed by its value) or a surrogate's kernel (not cached, see _run).
+# The high-fidelity block's two compiled forms (cached on disk: every argument is typed by its
+# value) and the fallback forms of a kernel passed in an argument (not cached, see advance).
 
 @njit(cache=True)
 def _run_hf(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
-    return _run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, False)
+    return advance(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, False)
 
 
 @njit(cache=True)
 def _run_split_hf(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
-    return _run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, True)
+    return advance(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, True)
 
 
 @njit
 def _run_kernel(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
-    return _run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, False)
+    return advance(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, False)
 
 
 @njit
 def _run_split_kernel(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
-    return _run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, True)
+    return advance(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, True)
 
 
-def run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
-    """The plant's kernel, explicit (:func:`_run`): the high-fidelity block's compiled form
-    comes from the disk cache, a surrogate's kernel is compiled once per process."""
+def run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, loops=None):
+    """The plant's kernel, explicit (:func:`advance`): the high-fidelity block's compiled form
+    comes from the disk cache; a surrogate's from its own ``loops`` (``(explicit, split)``,
+    each ``form(s, i_cmd, p, clock, loop, data)``, see :func:`fluid_kernels`), or else is
+    compiled once per process."""
+    if loops is not None:
+        return loops[0](s, i_cmd, p, clock, loop, data)
     if p12_fn is None and flows_fn is None:
         return _run_hf(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data)
     return _run_kernel(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data)
 
 
-def run_split(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
-    """The plant's kernel, split (:func:`_run`); compiled forms as :func:`run`'s."""
+def run_split(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, loops=None):
+    """The plant's kernel, split (:func:`advance`); compiled forms as :func:`run`'s."""
+    if loops is not None:
+        return loops[1](s, i_cmd, p, clock, loop, data)
     if p12_fn is None and flows_fn is None:
         return _run_split_hf(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data)
     return _run_split_kernel(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data)

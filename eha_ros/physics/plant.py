@@ -7,7 +7,7 @@ all evaluated at the state at the start of the step; the two second-order bodies
 jack) update velocity before position (semi-implicit Euler).  That is the ``explicit``
 integrator, the reference's and the default; ``split`` takes the jack and its chambers as a
 Stormer-Verlet pair with linearly implicit pressures and places friction transitions and end
-stops on 1 us substeps, which holds the in-loop bounds at 10-25 us steps (:func:`.loop.run`,
+stops on 1 us substeps, which holds the in-loop bounds at 10-25 us steps (:func:`.loop.advance`,
 ``bench/inloop.py``).
 
 The controller runs every ``controller_period_s`` (a whole number of plant steps; by default
@@ -223,13 +223,14 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
         Recording interval [s], a whole number of controller periods (default 0.1 ms, or the
         controller period if longer; ``None``: every controller tick).
     fluid : FluidBlock, optional
-        A surrogate of the fluid-dynamic block (:func:`eha_ros.surrogates.base.load_surrogate`,
-        see :class:`.fluid.FluidBlock`): algebraic, its kernel gives P12, or dynamic, the
-        metering-edge flows only (see :func:`.loop.run`); the high-fidelity block when ``None``.
+        A surrogate of the fluid-dynamic block (:func:`eha_ros.surrogates.registry.load_surrogate`,
+        see :class:`.loop.FluidBlock`): algebraic, its kernel gives P12, or dynamic, the
+        metering-edge flows only (see :func:`.loop.advance`); the high-fidelity block when
+        ``None``.
     integrator : str
         ``explicit`` (the reference's scheme, the default) or ``split`` (the jack and its
         chambers as a Stormer-Verlet pair with linearly implicit pressures, events in 1 us
-        substeps: the larger steps, see :func:`.loop.run` and ``bench/inloop.py``).
+        substeps: the larger steps, see :func:`.loop.advance` and ``bench/inloop.py``).
     events : optional
         Parameter changes during the run, after the scenario's own events: an
         :class:`~.events.EventSchedule` or what one is

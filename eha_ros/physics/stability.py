@@ -102,7 +102,7 @@ def stability_limit(p: PlantParams, fluid: FluidBlock | None = None,
     return min(stability_limits(p, fluid, integrator), key=lambda x: x.dt_s)
 
 
-#: The plant's integrators (:func:`.loop.run`): ``explicit``, the reference's scheme and the
+#: The plant's integrators (:func:`.loop.advance`): ``explicit``, the reference's scheme and the
 #: default; ``split``, the jack and its chambers as a Stormer-Verlet pair with linearly
 #: implicit pressures, every step that holds an event it cannot place taken again in
 #: substeps of :data:`SUBSTEP_S`.

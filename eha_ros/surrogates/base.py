@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections import namedtuple
 from typing import Callable
 
 import numpy as np
@@ -26,17 +27,28 @@ from eha_ros.physics import PlantParams
 from eha_ros.physics.loop import P12
 from eha_ros.physics.maps import fluid_hash, spool_grid
 
-__all__ = ['FluidSurrogate', 'SurrogateError', 'relative_error']
+__all__ = ['Forms', 'FluidSurrogate', 'SurrogateError', 'relative_error']
 
 
 class SurrogateError(ArtefactError):
     """A surrogate artefact is missing, corrupt, or was built for other physics parameters."""
 
 
-@njit  # not cached: a kernel argument's type names the kernel object (see physics.loop.run)
+@njit  # not cached: a kernel argument's type names the kernel object (see Forms)
 def _vectorise(kernel, data, xs, q, lap, clr, out):
     for i in range(xs.size):
         out[i] = kernel(data, xs[i], q[i], lap[i], clr[i])
+
+
+#: A kernel's compiled forms, each with the kernel a global (not an argument) so that numba
+#: caches it on disk: the plant's loop explicit and split (``form(s, i_cmd, p, clock, loop,
+#: data)``, :func:`eha_ros.physics.loop.advance`) and the loop over points
+#: (``points(data, xs, q, lap, clr, out)`` for P12, ``points(data, xs, p1, p2, lap_s, lap_r,
+#: out1, out2)`` for chamber flows).  A kernel passed as an argument types the compiled code
+#: by its object, so without these forms every process compiles the plant's loop again for
+#: each surrogate (about 20 s).  Numba checks the source file of a form only: a kernel changed
+#: without reinstalling the package (which renews every installed file) keeps its old code.
+Forms = namedtuple('Forms', 'run run_split points')
 
 
 @dataclasses.dataclass
@@ -49,9 +61,18 @@ class FluidSurrogate:
     meta: dict
     #: the module that rebuilds the artefact (``python -m <rebuild>``)
     rebuild: str = 'eha_ros.training.{lut,ga,nn,dynamic}'
+    #: the kernel's disk-cached compiled forms (:data:`Forms`; ``None``: compiled per process)
+    forms: Forms | None = None
 
     #: what the kernel gives: P12 (the reference's surrogates; :mod:`.dynamic`'s give flows)
     kernel_output = P12
+
+    @property
+    def loops(self) -> tuple | None:
+        """The plant's loop with this kernel, explicit and split, cached on disk
+        (:data:`Forms`, see :func:`eha_ros.physics.loop.fluid_kernels`); ``None`` without
+        them: the loop is then compiled once per process."""
+        return None if self.forms is None else (self.forms.run, self.forms.run_split)
 
     def prepare(self, p: PlantParams) -> tuple:
         """The kernel's data for the parameters ``p`` (the artefact's arrays: an algebraic
@@ -85,7 +106,10 @@ class FluidSurrogate:
                                      for a in (xs_m, q_m3_s, overlap_m, clearance_m)))
         flat = [np.ascontiguousarray(a.ravel()) for a in arrs]
         out = np.empty(flat[0].size)
-        _vectorise(self.kernel, self.data, *flat, out)
+        if self.forms is not None:
+            self.forms.points(self.data, *flat, out)
+        else:
+            _vectorise(self.kernel, self.data, *flat, out)
         return out.reshape(arrs[0].shape) if arrs[0].ndim else float(out[0])
 
     def check_params(self, p: PlantParams) -> None:

@@ -32,7 +32,7 @@ Validity (stored in each artefact's ``meta['valid_range']``)
     pressures, volumes or leakage, which stay physical); an artefact built for others is
     refused.
 
-Kernel interface (:func:`eha_ros.physics.loop.run`, ``kernel_output`` CHAMBER_FLOWS)
+Kernel interface (:func:`eha_ros.physics.loop.advance`, ``kernel_output`` CHAMBER_FLOWS)
     ``kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m) -> (Q1L, Q2L)`` [m^3/s]:
     the net flow into chamber 1 (edges 1S at ``xs - lap_supply``, 1R at ``-xs - lap_return``)
     and out of chamber 2 (2R at ``xs - lap_return``, 2S at ``-xs - lap_supply``), as
@@ -108,10 +108,10 @@ from eha_ros.artefacts import check_hash
 from eha_ros.mlp import mlp_forward, split_weights
 from eha_ros.physics import PlantParams, default_params, params_hash
 from eha_ros.physics.maps import WEAR_RANGES, spool_grid
-from eha_ros.physics.loop import CHAMBER_FLOWS
+from eha_ros.physics.loop import CHAMBER_FLOWS, advance
 from eha_ros.physics.valve import (edge_coefficients, edge_constants, fluid_constants,
                                    orifice_flow, valve_flows)
-from eha_ros.surrogates.base import FluidSurrogate, SurrogateError
+from eha_ros.surrogates.base import FluidSurrogate, Forms, SurrogateError
 
 __all__ = ['EDGE_PARAMETERS', 'edge_hash', 'DP_MAX_PA', 'edge_flows', 'edge_conductance',
            'DynamicSurrogate', 'DlutSurrogate', 'DnnSurrogate', 'DgaSurrogate',
@@ -595,7 +595,68 @@ def dga_kernel(data, xs_m, p1_pa, p2_pa, lap_supply_m, lap_return_m):
     return q1l, q2l
 
 
-@njit  # not cached: a kernel argument's type names the kernel object (see physics.loop.run)
+# The plant's loop and the loop over points with each kernel: the kernel a global of its forms,
+# not an argument, so that they are cached on disk (:class:`.base.Forms`).
+
+@njit(cache=True)
+def _run_dlut(s, i_cmd, p, clock, loop, data):
+    return advance(s, i_cmd, p, clock, loop, None, dlut_kernel, data, False)
+
+
+@njit(cache=True)
+def _run_split_dlut(s, i_cmd, p, clock, loop, data):
+    return advance(s, i_cmd, p, clock, loop, None, dlut_kernel, data, True)
+
+
+@njit(cache=True)
+def _points_dlut(data, xs, p1, p2, lap_s, lap_r, out1, out2):
+    for i in range(xs.size):
+        out1[i], out2[i] = dlut_kernel(data, xs[i], p1[i], p2[i], lap_s[i], lap_r[i])
+
+
+@njit(cache=True)
+def _run_dnn(s, i_cmd, p, clock, loop, data):
+    return advance(s, i_cmd, p, clock, loop, None, dnn_kernel, data, False)
+
+
+@njit(cache=True)
+def _run_split_dnn(s, i_cmd, p, clock, loop, data):
+    return advance(s, i_cmd, p, clock, loop, None, dnn_kernel, data, True)
+
+
+@njit(cache=True)
+def _points_dnn(data, xs, p1, p2, lap_s, lap_r, out1, out2):
+    for i in range(xs.size):
+        out1[i], out2[i] = dnn_kernel(data, xs[i], p1[i], p2[i], lap_s[i], lap_r[i])
+
+
+@njit(cache=True)
+def _run_dga(s, i_cmd, p, clock, loop, data):
+    return advance(s, i_cmd, p, clock, loop, None, dga_kernel, data, False)
+
+
+@njit(cache=True)
+def _run_split_dga(s, i_cmd, p, clock, loop, data):
+    return advance(s, i_cmd, p, clock, loop, None, dga_kernel, data, True)
+
+
+@njit(cache=True)
+def _points_dga(data, xs, p1, p2, lap_s, lap_r, out1, out2):
+    for i in range(xs.size):
+        out1[i], out2[i] = dga_kernel(data, xs[i], p1[i], p2[i], lap_s[i], lap_r[i])
+
+
+#: The compiled forms of :func:`dlut_kernel`, :func:`dnn_kernel` and :func:`dga_kernel`.
+DLUT_FORMS = Forms(_run_dlut, _run_split_dlut, _points_dlut)
+
+
+DNN_FORMS = Forms(_run_dnn, _run_split_dnn, _points_dnn)
+
+
+DGA_FORMS = Forms(_run_dga, _run_split_dga, _points_dga)
+
+
+@njit  # not cached: a kernel argument's type names the kernel object (see .base.Forms)
 def _chamber_loop(kernel, data, xs, p1, p2, lap_s, lap_r, out1, out2):
     for i in range(xs.size):
         out1[i], out2[i] = kernel(data, xs[i], p1[i], p2[i], lap_s[i], lap_r[i])
@@ -705,8 +766,11 @@ class DynamicSurrogate(FluidSurrogate):
         arrs = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (xs_m, p1_pa, p2_pa)))
         xs, a1, a2 = (np.ascontiguousarray(a.ravel()) for a in arrs)
         o1, o2 = np.empty(xs.size), np.empty(xs.size)
-        _chamber_loop(self.kernel, data, xs, a1, a2, np.full(xs.size, p.overlap_supply_m),
-                      np.full(xs.size, p.overlap_return_m), o1, o2)
+        laps = np.full(xs.size, p.overlap_supply_m), np.full(xs.size, p.overlap_return_m)
+        if self.forms is not None:
+            self.forms.points(data, xs, a1, a2, *laps, o1, o2)
+        else:
+            _chamber_loop(self.kernel, data, xs, a1, a2, *laps, o1, o2)
         return o1.reshape(arrs[0].shape), o2.reshape(arrs[0].shape)
 
     def chamber_flow(self, xs_m, p_pa, params: PlantParams | None = None):

@@ -51,7 +51,8 @@ import numpy as np
 from numba import njit
 
 from eha_ros.physics.maps import FLOW_MAX_M3_S
-from eha_ros.surrogates.base import FluidSurrogate, SurrogateError
+from eha_ros.physics.loop import advance
+from eha_ros.surrogates.base import FluidSurrogate, Forms, SurrogateError
 
 __all__ = ['XS_REF_M', 'Q_REF_M3_S', 'ga_p12', 'formula', 'ga_kernel', 'make_ga']
 
@@ -97,6 +98,29 @@ def ga_kernel(data, xs_m, q_m3_s, overlap_m, clearance_m):
     return ga_p12(data[0], x / n[0], q / n[1])
 
 
+# The plant's loop and the loop over points with :func:`ga_kernel` a global, not an argument: so
+# these forms are cached on disk (:class:`.base.Forms`).
+
+@njit(cache=True)
+def _run_ga(s, i_cmd, p, clock, loop, data):
+    return advance(s, i_cmd, p, clock, loop, ga_kernel, None, data, False)
+
+
+@njit(cache=True)
+def _run_split_ga(s, i_cmd, p, clock, loop, data):
+    return advance(s, i_cmd, p, clock, loop, ga_kernel, None, data, True)
+
+
+@njit(cache=True)
+def _points_ga(data, xs, q, lap, clr, out):
+    for i in range(xs.size):
+        out[i] = ga_kernel(data, xs[i], q[i], lap[i], clr[i])
+
+
+#: The compiled forms of :func:`ga_kernel`.
+GA_FORMS = Forms(_run_ga, _run_split_ga, _points_ga)
+
+
 def make_ga(coefficients, xs_max_m: float, q_max_m3_s: float = FLOW_MAX_M3_S,
             meta: dict | None = None, name: str = 'ga') -> FluidSurrogate:
     """A surrogate from fitted coefficients; inputs clamped to ``+-xs_max_m``,
@@ -109,5 +133,5 @@ def make_ga(coefficients, xs_max_m: float, q_max_m3_s: float = FLOW_MAX_M3_S,
     norm = np.array([XS_REF_M, Q_REF_M3_S, float(xs_max_m), float(q_max_m3_s)])
     meta = dict(meta or {})
     meta.setdefault('kind', 'ga')
-    return FluidSurrogate(name=name, kernel=ga_kernel, data=(c, norm), meta=meta,
+    return FluidSurrogate(name=name, kernel=ga_kernel, forms=GA_FORMS, data=(c, norm), meta=meta,
                           rebuild='eha_ros.training.ga')

@@ -24,7 +24,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from eha_ros.surrogates.base import FluidSurrogate, SurrogateError
+from eha_ros.physics.loop import advance
+from eha_ros.surrogates.base import FluidSurrogate, Forms, SurrogateError
 
 __all__ = ['lut_kernel', 'axis_tables', 'make_lut', 'AXES']
 
@@ -121,6 +122,29 @@ def lut_kernel(data, xs_m, q_m3_s, overlap_m, clearance_m):
     return acc
 
 
+# The plant's loop and the loop over points with :func:`lut_kernel` a global, not an argument: so
+# these forms are cached on disk (:class:`.base.Forms`).
+
+@njit(cache=True)
+def _run_lut(s, i_cmd, p, clock, loop, data):
+    return advance(s, i_cmd, p, clock, loop, lut_kernel, None, data, False)
+
+
+@njit(cache=True)
+def _run_split_lut(s, i_cmd, p, clock, loop, data):
+    return advance(s, i_cmd, p, clock, loop, lut_kernel, None, data, True)
+
+
+@njit(cache=True)
+def _points_lut(data, xs, q, lap, clr, out):
+    for i in range(xs.size):
+        out[i] = lut_kernel(data, xs[i], q[i], lap[i], clr[i])
+
+
+#: The compiled forms of :func:`lut_kernel`.
+LUT_FORMS = Forms(_run_lut, _run_split_lut, _points_lut)
+
+
 def make_lut(xs_m, q_m3_s, overlap_m, clearance_m, p12_pa, meta: dict | None = None,
              dtype=np.float32, name: str = 'lut') -> FluidSurrogate:
     """A lookup-table surrogate from a grid and P12 on it.
@@ -161,5 +185,5 @@ def make_lut(xs_m, q_m3_s, overlap_m, clearance_m, p12_pa, meta: dict | None = N
     meta.setdefault('output', {'name': 'p12_pa', 'unit': 'Pa'})
     extra = [axis_tables(a) for a in axes]
     data = (*axes, table, *(e[0] for e in extra), *(e[1] for e in extra))
-    return FluidSurrogate(name=name, kernel=lut_kernel, data=data, meta=meta,
+    return FluidSurrogate(name=name, kernel=lut_kernel, forms=LUT_FORMS, data=data, meta=meta,
                           rebuild='eha_ros.training.lut')

@@ -41,7 +41,8 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from eha_ros.mlp import mlp_forward, split_weights
-from eha_ros.surrogates.base import SurrogateError
+from eha_ros.physics.loop import advance
+from eha_ros.surrogates.base import Forms, SurrogateError
 
 __all__ = ['INPUT_NAMES', 'INPUT_UNITS', 'MAX_WIDTH', 'LINEAR', 'ASINH', 'mlp_kernel',
            'mlp_numpy', 'pack', 'unpack', 'transform_inputs', 'fit_inputs', 'fit_output']
@@ -141,6 +142,29 @@ def mlp_kernel(data, xs_m, q_m3_s, overlap_m, clearance_m):
     return output[0] + output[1] * buf[a]
 
 
+# The plant's loop and the loop over points with :func:`mlp_kernel` a global, not an argument: so
+# these forms are cached on disk (:class:`.base.Forms`).
+
+@njit(cache=True)
+def _run_mlp(s, i_cmd, p, clock, loop, data):
+    return advance(s, i_cmd, p, clock, loop, mlp_kernel, None, data, False)
+
+
+@njit(cache=True)
+def _run_split_mlp(s, i_cmd, p, clock, loop, data):
+    return advance(s, i_cmd, p, clock, loop, mlp_kernel, None, data, True)
+
+
+@njit(cache=True)
+def _points_mlp(data, xs, q, lap, clr, out):
+    for i in range(xs.size):
+        out[i] = mlp_kernel(data, xs[i], q[i], lap[i], clr[i])
+
+
+#: The compiled forms of :func:`mlp_kernel`.
+MLP_FORMS = Forms(_run_mlp, _run_split_mlp, _points_mlp)
+
+
 def unpack(data) -> dict:
     """The packed tuple as named arrays: ``sizes``, ``inputs``, ``output``, ``weights`` (a list
     of ``(W, b)``)."""
@@ -196,7 +220,7 @@ def mlp_numpy(data, xs_m, q_m3_s, overlap_m=0.0, clearance_m=0.0):
     return out.reshape(arrs[0].shape)
 
 
-@njit  # not cached: a kernel argument's type names the kernel object (see physics.loop.run)
+@njit  # not cached: a kernel argument's type names the kernel object (see .base.Forms)
 def _kernel_loop(kernel, data, xs, q, lap, clr):
     """Sum of ``kernel`` over the points, called as the plant calls it (used for timing)."""
     s = 0.0

@@ -13,7 +13,7 @@ from typing import Callable
 from eha_ros.artefacts import load_artefact, models_dir
 from eha_ros.physics import PlantParams, default_params
 from eha_ros.surrogates import dynamic, ga, lut, nn
-from eha_ros.surrogates.base import FluidSurrogate, SurrogateError
+from eha_ros.surrogates.base import FluidSurrogate, Forms, SurrogateError
 
 __all__ = ['Kind', 'KINDS', 'load_surrogate', 'shipped_surrogates']
 
@@ -26,15 +26,20 @@ class Kind:
     cls: type
     #: ``python -m`` argument that rebuilds the artefact
     rebuild: str
+    #: the kernel's disk-cached compiled forms (:data:`.base.Forms`)
+    forms: Forms
 
 
 KINDS = {
-    'lut': Kind(lut.lut_kernel, FluidSurrogate, 'eha_ros.training.lut'),
-    'ga': Kind(ga.ga_kernel, FluidSurrogate, 'eha_ros.training.ga'),
-    'mlp': Kind(nn.mlp_kernel, FluidSurrogate, 'eha_ros.training.nn'),
-    'dlut': Kind(dynamic.dlut_kernel, dynamic.DlutSurrogate, 'eha_ros.training.dynamic dlut'),
-    'dnn': Kind(dynamic.dnn_kernel, dynamic.DnnSurrogate, 'eha_ros.training.dynamic dnn'),
-    'dga': Kind(dynamic.dga_kernel, dynamic.DgaSurrogate, 'eha_ros.training.dynamic dga'),
+    'lut': Kind(lut.lut_kernel, FluidSurrogate, 'eha_ros.training.lut', lut.LUT_FORMS),
+    'ga': Kind(ga.ga_kernel, FluidSurrogate, 'eha_ros.training.ga', ga.GA_FORMS),
+    'mlp': Kind(nn.mlp_kernel, FluidSurrogate, 'eha_ros.training.nn', nn.MLP_FORMS),
+    'dlut': Kind(dynamic.dlut_kernel, dynamic.DlutSurrogate, 'eha_ros.training.dynamic dlut',
+                 dynamic.DLUT_FORMS),
+    'dnn': Kind(dynamic.dnn_kernel, dynamic.DnnSurrogate, 'eha_ros.training.dynamic dnn',
+                dynamic.DNN_FORMS),
+    'dga': Kind(dynamic.dga_kernel, dynamic.DgaSurrogate, 'eha_ros.training.dynamic dga',
+                dynamic.DGA_FORMS),
 }
 
 
@@ -63,6 +68,7 @@ def load_surrogate(name: str, params: PlantParams | None = None,
     if kind is None:
         raise SurrogateError(f'{path}: unknown surrogate kind {meta.get("kind")!r} (one of '
                              f'{", ".join(KINDS)})')
-    s = kind.cls(name=name, kernel=kind.kernel, data=data, meta=meta, rebuild=kind.rebuild)
+    s = kind.cls(name=name, kernel=kind.kernel, data=data, meta=meta, rebuild=kind.rebuild,
+                 forms=kind.forms)
     s.check_params(p)
     return s
