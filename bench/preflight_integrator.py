@@ -29,11 +29,11 @@ from eha_ros.health.preflight import CONDITION_READINGS, FAULT_NAMES, load_fault
 from eha_ros.physics.bench import mean_conditions, measure_conditions
 from eha_ros.physics.maintenance import run_preflight
 from eha_ros.physics.params import replace
+from eha_ros.physics.stability import DT_S
 from eha_ros.training.preflight import case_params, cases
 
 #: The stream of the bench's cases (used by nothing else).
 STREAM = 611
-DT_S = 1e-6
 
 
 def _variants(split_dts):

@@ -22,14 +22,13 @@ from eha_ros.physics import default_params
 from eha_ros.physics.valve import valve_flows
 from eha_ros.artefacts import models_dir
 from eha_ros.surrogates.registry import load_surrogate
-from eha_ros.surrogates.dynamic import _chamber_loop
 from eha_ros.training.dynamic import build_dga, chamber_errors, edge_errors
 
 
 @njit(cache=True)
 def _hf_loop(xs, p1, p2, p, out1, out2):
-    """hf's flows over the points, as :func:`eha_ros.surrogates.dynamic._chamber_loop` runs a
-    surrogate's kernel (for the timing)."""
+    """hf's flows over the points, as a surrogate's compiled loop over points runs its
+    kernel (:data:`eha_ros.surrogates.base.Forms`; for the timing)."""
     for i in range(xs.size):
         out1[i], out2[i] = valve_flows(xs[i], p1[i], p2[i], p)
 
@@ -72,7 +71,7 @@ def main():
     for name in DYNAMIC_MODELS:
         s = load_surrogate(name)
         data = s.prepare(p)
-        ns = _best_ns(lambda: _chamber_loop(s.kernel, data, xs, p1, p2, lap_s, lap_r, o1, o2),
+        ns = _best_ns(lambda: s.forms.points(data, xs, p1, p2, lap_s, lap_r, o1, o2),
                       xs.size)
         t0 = time.perf_counter()
         grid = {'n_xs': 7, 'n_p': 7} if args.smoke else {}

@@ -49,7 +49,7 @@ import numpy as np  # noqa: E402
 from eha_ros.health.preflight import FAULTS  # noqa: E402
 from eha_ros.physics.maintenance import PREFLIGHT_S  # noqa: E402
 from eha_ros.sweep import parse_spec, run_sweep  # noqa: E402
-from eha_ros.sweep.engine import _client, _close, _procedure, warm_up  # noqa: E402
+from eha_ros.sweep.engine import cluster, warm_up, worker_procedure  # noqa: E402
 
 
 def spec_raw(kind: str, n: int) -> dict:
@@ -66,7 +66,7 @@ def spec_raw(kind: str, n: int) -> dict:
 
 
 def _plain(raw, base, points) -> float:
-    proc = _procedure(raw, base)
+    proc = worker_procedure(raw, base)
     proc.warm_up()
     t0 = time.perf_counter()
     for pt in points:
@@ -91,21 +91,18 @@ def plain_2(raw, base, points) -> float:
 
 
 def _warm(args):
-    _procedure(*args).warm_up()
+    worker_procedure(*args).warm_up()
     return os.getpid()
 
 
 def engine(spec, workers, tmp: Path, tag: str) -> dict:
     t0 = time.perf_counter()
-    client, cluster = _client(workers, None)
-    client.run(warm_up, spec.canonical(), spec.base)
-    start = time.perf_counter() - t0
-    try:
+    with cluster(workers) as client:
+        client.run(warm_up, spec.canonical(), spec.base)
+        start = time.perf_counter() - t0
         t0 = time.perf_counter()
         s = run_sweep(spec, tmp / tag, client=client, progress=False)
         wall = time.perf_counter() - t0
-    finally:
-        _close(client, cluster)
     assert s['ok'] == s['cases'], s
     return {'wall_s': wall, 'cluster_start_s': start, 'batches': s['batches'],
             'batch_size': s['batch_size']}

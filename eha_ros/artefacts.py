@@ -13,13 +13,15 @@ torch.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ['ArtefactError', 'models_dir', 'save_artefact', 'load_artefact', 'check_hash']
+__all__ = ['ArtefactError', 'CachedReader', 'models_dir', 'save_artefact', 'load_artefact',
+           'check_hash']
 
 
 class ArtefactError(ValueError):
@@ -69,3 +71,25 @@ def check_hash(meta: dict, key: str, expected: str, what: str, rebuild: str,
         raise error(f'{what} was built for {group} parameters {meta.get(key)}, these are '
                     f'{expected}: rebuild it with python -m {rebuild}, or use the parameters '
                     'it was built for')
+
+
+class CachedReader:
+    """``reader(path)``: ``read(path)`` once per state of the file, the result kept by the
+    resolved path and its modification time (``size`` files), so a rebuilt artefact is read
+    again and an unchanged one is not.  A missing file reads as ``read`` says (nothing kept);
+    :meth:`clear` forgets every result (for a rewrite within the clock's resolution)."""
+
+    def __init__(self, read, size: int = 4):
+        self._read = read
+        self._cached = functools.lru_cache(maxsize=size)(self._read_state)
+
+    def _read_state(self, path: str, mtime_ns: int):
+        return self._read(Path(path))
+
+    def __call__(self, path: Path):
+        path = Path(path).resolve()
+        return self._cached(str(path), path.stat().st_mtime_ns if path.is_file() else 0)
+
+    def clear(self) -> None:
+        """Forget every result read."""
+        self._cached.cache_clear()

@@ -42,7 +42,7 @@ import numpy as np
 from eha_ros.graph import DYNAMIC_MODELS
 from eha_ros.physics import simulate
 from eha_ros.physics.params import replace
-from eha_ros.physics.stability import EXPLICIT, SPLIT
+from eha_ros.physics.stability import DT_S, EXPLICIT, SPLIT
 
 from eha_ros.surrogates.base import relative_error
 
@@ -69,7 +69,6 @@ WEAR_POINTS = {'nominal': None, 'worn_a': (3.1e-6, 3.9e-6), 'worn_b': (-0.7e-6, 
                'rand_5': (0.84e-6, 5.83e-6), 'rand_6': (4.32e-6, 5.6e-6),
                'worn_hold': (0.3e-6, 3.7e-6), 'worn_hold_b': (0.14e-6, 4.08e-6)}
 CONTROLLER_PERIOD_S = 1e-3
-DT_S = 1e-6
 #: Relative changes of the discharge coefficient in hf's yardstick, each of both signs: the
 #: interval +-0.1 % sampled at three magnitudes.  Where the loop is chaotic (a stick-slip
 #: episode that comes or not on a rounding) hf's response is not monotonic in Cd, and the ends
@@ -188,7 +187,7 @@ def noise_free(p, scenario, surrogates, large_dts=(), keep_runs=False, split_dts
     return out
 
 
-def _mean_sem(errs) -> dict:
+def mean_sem(errs) -> dict:
     """Mean of each quantity over the seeds with its standard error (``_sem``) and the values."""
     out = {}
     for q in ('jack', 'p12'):
@@ -210,8 +209,8 @@ def with_noise(p, scenario, surrogates, seeds=5):
     spread = [_errors(hf[k + 1], hf[k]) for k in range(seeds)]
     pc = replace(pn, discharge_coefficient=pn.discharge_coefficient * 1.001)
     same = [_errors(run(pc, scenario, seed=k), hf[k]) for k in range(seeds)]
-    out = {'seeds': int(seeds), 'hf_seed_to_seed': _mean_sem(spread),
-           'hf_cd_plus_0.1%_same_seed': _mean_sem(same), 'models': {}}
+    out = {'seeds': int(seeds), 'hf_seed_to_seed': mean_sem(spread),
+           'hf_cd_plus_0.1%_same_seed': mean_sem(same), 'models': {}}
     limit = {q: 1.5 * out['hf_seed_to_seed'][q] for q in ('jack', 'p12')}
     for name, s in surrogates.items():
         try:
@@ -219,7 +218,7 @@ def with_noise(p, scenario, surrogates, seeds=5):
         except Exception as exc:
             out['models'][name] = {'error': f'{type(exc).__name__}: {exc}'}
             continue
-        m = _mean_sem(errs)
+        m = mean_sem(errs)
         m['meets'] = bool(m['jack'] <= limit['jack'] and m['p12'] <= limit['p12'])
         out['models'][name] = m
     return out

@@ -25,7 +25,7 @@ def test_graph_recording_holds_every_tick_and_diagnoses_nominal_valve(eha_graph,
     missing = sorted(set(range(401)) - set(ticks))
     assert counts['/eha/state'] == r.state['tick'].size == 401, f'missing ticks {missing}'
     assert counts['/clock'] >= 401 and counts['/eha/servovalve_command'] >= 400
-    d = diagnose(str(path), update_s=0.2)
+    d = diagnose(str(path), update_period_s=0.2)
     assert abs(d['radial_clearance_m'] - 2.5e-6) <= 2 * d['radial_clearance_std_m']
     assert abs(d['overlap_m'] - 1.0e-6) <= 2 * d['overlap_std_m']
     assert d['level'] == 'OK' and d['samples_used'] > 100 and d['kind'] == 'in-service'

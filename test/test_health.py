@@ -219,3 +219,29 @@ def test_diagnostics_go_stale_when_states_stop(ros_env):
         mon.close()
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+def test_cached_reader_reads_a_file_once_per_state(tmp_path):
+    """The one artefact reader cached by modification time: an unchanged file is read once,
+    a rewritten one again, a missing one raises and leaves nothing kept, ``clear`` forgets."""
+    import os
+    from eha_ros.artefacts import CachedReader
+    reads = []
+
+    def read(path):
+        reads.append(path)
+        return path.read_text()
+
+    reader = CachedReader(read)
+    f = tmp_path / 'a.npz'
+    with pytest.raises(FileNotFoundError):
+        reader(f)
+    f.write_text('one')
+    os.utime(f, ns=(1_000_000_000, 1_000_000_000))
+    assert reader(f) == reader(tmp_path / '.' / 'a.npz') == 'one'
+    assert len(reads) == 2  # the failed read and one read of 'one'
+    f.write_text('two')
+    os.utime(f, ns=(2_000_000_000, 2_000_000_000))
+    assert reader(f) == 'two' and len(reads) == 3
+    reader.clear()
+    assert reader(f) == 'two' and len(reads) == 4

@@ -5,6 +5,8 @@ imports included, so a circle hidden behind a lazy import is found too.
 """
 
 import ast
+import functools
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -128,3 +130,105 @@ def test_inference_imports_neither_training_nor_torch():
     assert out.returncode == 0, out.stderr[-2000:]
     n, bad = out.stdout.split(' ', 1)
     assert int(n) > 100 and bad.strip() == '[]', out.stdout
+
+
+def _private_imports(path: Path) -> list[str]:
+    """``module.name`` of every private name (``_x``, not dunder) that ``path`` imports from
+    another eha_ros module, relative imports included."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ImportFrom) and (node.level or (node.module or '').startswith(
+                'eha_ros')):
+            out += [f'{"." * node.level}{node.module or ""}.{a.name}' for a in node.names
+                    if a.name.startswith('_') and not a.name.startswith('__')]
+    return out
+
+
+def test_the_private_import_finder_finds_one(tmp_path):
+    src = tmp_path / 'm.py'
+    src.write_text('from eha_ros.a import b, _c as d\nfrom .e import _f\nfrom os import _g\n'
+                   'from eha_ros.h import i as _i\n')
+    assert _private_imports(src) == ['eha_ros.a._c', '.e._f']
+
+
+def test_no_private_name_crosses_a_module():
+    """What another module needs is public: no ``from eha_ros... import _name`` in the package
+    or the benches."""
+    benches = sorted((Path(__file__).resolve().parents[1] / 'bench').glob('*.py'))
+    assert len(benches) > 5  # the walk saw the benches
+    found = {str(p): _private_imports(p) for p in [*_modules().values(), *benches]}
+    assert {p: names for p, names in found.items() if names} == {}
+
+
+def _top_names(path: Path) -> set[str]:
+    """Names a module defines or imports at its top level, and its classes' members
+    (``Class.member``)."""
+    out = set()
+    for n in ast.parse(path.read_text(), str(path)).body:
+        if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            out.add(n.name)
+            if isinstance(n, ast.ClassDef):
+                for m in n.body:
+                    targets = ([m] if isinstance(m, (ast.FunctionDef, ast.AsyncFunctionDef))
+                               else m.targets if isinstance(m, ast.Assign)
+                               else [m.target] if isinstance(m, ast.AnnAssign) else [])
+                    out.update(f'{n.name}.{getattr(t, "name", getattr(t, "id", ""))}'
+                               for t in targets)
+        elif isinstance(n, (ast.Assign, ast.AnnAssign)):
+            for t in (n.targets if isinstance(n, ast.Assign) else [n.target]):
+                out.update(e.id for e in ast.walk(t) if isinstance(e, ast.Name))
+        elif isinstance(n, (ast.Import, ast.ImportFrom)):
+            out.update((a.asname or a.name).split('.')[0] for a in n.names)
+    return out
+
+
+def _unresolved(ref: str, here: str, modules: dict, names) -> bool:
+    """Whether the reference ``ref`` names nothing: ``eha_ros.x.y`` absolute; ``.x.y`` as
+    Sphinx resolves it (in the module ``here`` first, else as the suffix of a full name)."""
+    parts = ref.lstrip('.').split('.')
+
+    def holds(mod, rest):
+        return not rest or rest[0] in names(mod) or '.'.join(rest[:2]) in names(mod)
+
+    if not ref.startswith('.'):
+        return not any(holds('.'.join(parts[:k]), parts[k:])
+                       for k in range(len(parts), 0, -1) if '.'.join(parts[:k]) in modules)
+    if holds(here, parts):
+        return False
+    for k in range(len(parts), 0, -1):
+        suffix = '.' + '.'.join(parts[:k])
+        if any(m.endswith(suffix) and holds(m, parts[k:]) for m in modules):
+            return False
+    return True
+
+
+def test_the_reference_checker_tells_stale_from_live():
+    modules = _modules()
+    names = functools.lru_cache(None)(lambda m: _top_names(modules[m]))
+    here = 'eha_ros.physics.plant'
+    for live in ('eha_ros.physics.loop', 'eha_ros.physics.loop.advance', '.loop.advance',
+                 '.base.relative_error', 'eha_ros.surrogates.base.FluidSurrogate.p12',
+                 'simulate'.join(['.', ''])):
+        assert not _unresolved(live, here, modules, names), live
+    for stale in ('eha_ros.physics.no_such_module', 'eha_ros.physics.loop.no_such',
+                  '.dynamic_train',
+                  '.health.InServiceEstimator', 'eha_ros.physics.fluid.FluidBlock'):
+        assert _unresolved(stale, here, modules, names), stale
+
+
+def test_docstrings_name_what_exists():
+    """Every ``eha_ros.x`` and every Sphinx cross-reference to ``.x`` in the package's source
+    names a module, or a name of one, that exists."""
+    modules = _modules()
+    names = functools.lru_cache(None)(lambda m: _top_names(modules[m]))
+    absolute = re.compile(r'\beha_ros(?:\.[A-Za-z_]\w*)+')
+    relative = re.compile(r':(?:mod|func|class|data|meth|attr|exc):`~?(\.[A-Za-z_][\w.]*)`')
+    stale = []
+    for mod, path in sorted(modules.items()):
+        text = path.read_text()
+        refs = [m.group(0) for m in absolute.finditer(text)]
+        refs += [m.group(1).rstrip('.') for m in relative.finditer(text)]
+        stale += [f'{mod}: {r}' for r in refs
+                  if r != 'eha_ros.__file__' and not r.startswith(GENERATED)
+                  and _unresolved(r, mod, modules, names)]
+    assert stale == []

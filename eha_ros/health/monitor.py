@@ -9,7 +9,7 @@ node can run it on a worker thread while states keep arriving.
 Three kinds of estimate:
 
 * ``in-service``: every ``update_period_s`` of state time, the valve model fitted to the
-  (XS, Q, P12) samples of the last ``window_s`` (:class:`.health.InServiceEstimator`):
+  (XS, Q, P12) samples of the last ``window_s`` (:class:`.posterior.InServiceEstimator`):
   radial clearance and overlap;
 * ``valve-test``: each time a valve-test curve completes, on the curves so far: for the
   reference's procedure the diagnostic network (:class:`.valve_test.ValveTestEstimator`):
@@ -50,7 +50,17 @@ from eha_ros.health.thresholds import (ERROR, OK, WARN, HealthEstimate, HealthTh
 from eha_ros.health.valve_test import ValveTestEstimator
 
 __all__ = ['ITEMS', 'ITEM_UNITS', 'Item', 'HealthReport', 'Job', 'MonitorCore',
-           'STATUS_DIVERGED', 'STATUS_VALVE_TEST', 'STATUS_PREFLIGHT', 'LEVEL_NAMES']
+           'STATUS_DIVERGED', 'STATUS_VALVE_TEST', 'STATUS_PREFLIGHT', 'LEVEL_NAMES',
+           'WINDOW_S', 'UPDATE_PERIOD_S', 'SETTLE_S']
+
+#: The monitor's settings, their one default (the node's parameters and ``eha-diagnose``'s
+#: flags of the same names read them here): the in-service fit's window of state time [s]
+#: (about ten periods of the slowest test sine, enough flow reversals to separate clearance
+#: from overlap), the state time between estimates [s] (twice a second: wear moves over
+#: hours) and the state time ignored at start [s] (the start-up transient of the loop).
+WINDOW_S = 1.0
+UPDATE_PERIOD_S = 0.5
+SETTLE_S = 0.05
 
 
 #: Monitored parameters (plant names) and their units.
@@ -189,13 +199,14 @@ class MonitorCore:
         The settled valve test's estimator; None: unavailable (``valve_fit_error``).
     """
 
-    def __init__(self, params: PlantParams, limits: HealthThresholds, window_s: float = 1.0,
-                 update_period_s: float = 0.5, settle_s: float = 0.05, in_service=None,
+    def __init__(self, params: PlantParams, limits: HealthThresholds,
+                 window_s: float = WINDOW_S, update_period_s: float = UPDATE_PERIOD_S,
+                 settle_s: float = SETTLE_S, in_service=None,
                  valve_test='default', faults='default', valve_fit='default'):
         self.params = params
         self.limits = limits
         self.window_s = float(window_s)
-        self.update_s = float(update_period_s)
+        self.update_period_s = float(update_period_s)
         self.settle_s = float(settle_s)
         self.in_service = (in_service if in_service is not None
                            else InServiceEstimator(params, limits=limits))
@@ -253,10 +264,10 @@ class MonitorCore:
         while self.samples and self.samples[0][0] < t_ns - self.window_s * 1e9:
             self.samples.popleft()
         if self.next_ns is None:
-            self.next_ns = t_ns + int(self.update_s * 1e9)
+            self.next_ns = t_ns + int(self.update_period_s * 1e9)
         if t_ns < self.next_ns:
             return []
-        self.next_ns = t_ns + int(self.update_s * 1e9)
+        self.next_ns = t_ns + int(self.update_period_s * 1e9)
         self.scheduled += 1
         arr = np.array([x[1:] for x in self.samples], dtype=float).reshape(-1, 3)
         return [Job(self, 'in-service', t_ns, arr)]

@@ -58,20 +58,19 @@ numpy only.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import itertools
 import math
 from pathlib import Path
 
 import numpy as np
 
-from eha_ros.artefacts import ArtefactError, load_artefact, models_dir
+from eha_ros.artefacts import ArtefactError, CachedReader, load_artefact, models_dir
 from eha_ros.mlp import flatten_weights, mlp_forward, split_weights
 from eha_ros.physics import default_params
 from eha_ros.physics.bench import CONDITIONS, Conditions, outside_ranges
 
-__all__ = ['Fault', 'FAULTS', 'FAULT_NAMES', 'FaultModel', 'FaultEstimate', 'OodModel',
-           'load_faults', 'preflight_features', 'model_inputs', 'FAULTS_FILE',
+__all__ = ['read_faults', 'Fault', 'FAULTS', 'FAULT_NAMES', 'FaultModel', 'FaultEstimate',
+           'OodModel', 'load_faults', 'preflight_features', 'model_inputs', 'FAULTS_FILE',
            'CONDITION_READINGS', 'N_INPUTS', 'RING_COLUMNS', 'Subspace', 'NetEnvelope']
 
 FAULTS_FILE = 'faults.npz'
@@ -353,12 +352,11 @@ def load_faults(path: Path | None = None) -> FaultModel:
     if not path.is_file():
         raise ArtefactError(f'{path}: no pre-flight fault network: build it with python -m '
                             f'{REBUILD}')
-    return _load_cached(str(path), path.stat().st_mtime_ns)
+    return read_faults(path)
 
 
-@functools.lru_cache(maxsize=4)
-def _load_cached(path: str, mtime_ns: int) -> FaultModel:
-    data, meta = load_artefact(Path(path), REBUILD)
+def _read_faults(path: Path) -> FaultModel:
+    data, meta = load_artefact(path, REBUILD)
     if tuple(meta.get('outputs', ())) != FAULT_NAMES:
         raise ArtefactError(f'{path}: outputs {meta.get("outputs")} are not {FAULT_NAMES}: '
                             f'rebuild it with python -m {REBUILD}')
@@ -381,3 +379,8 @@ def _load_cached(path: str, mtime_ns: int) -> FaultModel:
                                             + [data[k + 1].size]),
                               data[k + 1], float(net['scale']))
     return FaultModel(in_mean, in_std, members, cal, meta, ood)
+
+
+#: :func:`load_faults`'s reader, once per state of the file
+#: (:class:`.artefacts.CachedReader`).
+read_faults = CachedReader(_read_faults)

@@ -26,7 +26,7 @@ from eha_ros.artefacts import check_hash, load_artefact, models_dir
 from eha_ros.physics import PlantParams, default_params
 from eha_ros.physics.maps import fluid_hash
 
-__all__ = ['SteadyTable', 'load_steady_table', 'TABLE_FILE']
+__all__ = ['SteadyTable', 'load_steady_table', 'sinh_axis', 'TABLE_FILE']
 
 TABLE_FILE = 'steady_table.npz'
 #: ``python -m`` argument that rebuilds it
@@ -39,7 +39,9 @@ XS_MAX_M, XS_SCALE_M, N_XS = 4e-5, 2e-6, 81
 Q_MAX_M3_S, Q_SCALE_M3_S, N_Q = 1.5e-5, 1e-6, 41
 
 
-def _axis(vmax, scale, n):
+def sinh_axis(vmax, scale, n):
+    """``n`` nodes on ``[-vmax, vmax]``, equally spaced in ``asinh(v / scale)``: dense within
+    about ``scale`` of zero, where the curves bend, sparse beyond."""
     u = np.linspace(-np.arcsinh(vmax / scale), np.arcsinh(vmax / scale), n)
     return scale * np.sinh(u)
 

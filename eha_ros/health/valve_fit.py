@@ -56,7 +56,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eha_ros.artefacts import ArtefactError, load_artefact, models_dir
+from eha_ros.artefacts import ArtefactError, CachedReader, load_artefact, models_dir
 from eha_ros.health.thresholds import HealthEstimate
 from eha_ros.physics import PlantParams, default_params
 from eha_ros.physics.bench import (CONDITIONS, Conditions, load_bench, true_conditions,
@@ -64,8 +64,8 @@ from eha_ros.physics.bench import (CONDITIONS, Conditions, load_bench, true_cond
 from eha_ros.physics.maps import WEAR_RANGES, steady_map
 from eha_ros.physics.params import ParameterError, replace
 
-__all__ = ['ValveFitEstimator', 'FitCalibration', 'load_calibration', 'FIT_NAMES',
-           'FIT_FILE', 'KHSV_RANGE', 'fit_curves']
+__all__ = ['read_calibration', 'ValveFitEstimator', 'FitCalibration', 'load_calibration',
+           'FIT_NAMES', 'FIT_FILE', 'KHSV_RANGE', 'fit_curves']
 
 FIT_FILE = 'valve_fit.npz'
 REBUILD = 'eha_ros.training.valve_fit'
@@ -169,15 +169,19 @@ def load_calibration(path: Path | None = None) -> FitCalibration:
     if not path.is_file():
         raise ArtefactError(f'{path}: no valve-fit calibration: build it with python -m '
                             f'{REBUILD}')
-    return _load_cached(str(path), path.stat().st_mtime_ns)
+    return read_calibration(path)
 
 
-@functools.lru_cache(maxsize=4)
-def _load_cached(path: str, mtime_ns: int) -> FitCalibration:
-    (factors, chi), meta = load_artefact(Path(path), REBUILD)
+def _read_calibration(path: Path) -> FitCalibration:
+    (factors, chi), meta = load_artefact(path, REBUILD)
     if meta.get('kind') != 'valve_fit' or factors.shape != (len(FIT_NAMES),):
         raise ArtefactError(f'{path}: not a valve-fit calibration')
     return FitCalibration(np.asarray(factors, dtype=float), float(np.ravel(chi)[0]), meta)
+
+
+#: :func:`load_calibration`'s reader, once per state of the file
+#: (:class:`.artefacts.CachedReader`).
+read_calibration = CachedReader(_read_calibration)
 
 
 def _params(base: PlantParams, theta) -> PlantParams:

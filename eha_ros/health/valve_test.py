@@ -34,21 +34,20 @@ Training, its data and noise model: :mod:`eha_ros.training.valve_test`
 from __future__ import annotations
 
 import dataclasses
-import functools
 from pathlib import Path
 
 import numpy as np
 
-from eha_ros.artefacts import ArtefactError, check_hash, load_artefact, models_dir
+from eha_ros.artefacts import ArtefactError, CachedReader, check_hash, load_artefact, models_dir
 from eha_ros.mlp import flatten_weights, mlp_forward, split_weights
 from eha_ros.health.thresholds import HealthEstimate
 from eha_ros.physics import PlantParams, default_params
 from eha_ros.physics.maps import WEAR_RANGES, fluid_hash
 from eha_ros.physics.params import ParameterError
 
-__all__ = ['ValveTestEstimator', 'WearEstimate', 'DiagnosticModel', 'load_diagnostic',
-           'estimate_wear', 'estimate_wear_batch', 'estimate_wear_map', 'canonical_curves',
-           'OUTPUT_NAMES', 'OUTPUT_UNITS']
+__all__ = ['read_diagnostic', 'ValveTestEstimator', 'WearEstimate', 'DiagnosticModel',
+           'load_diagnostic', 'estimate_wear', 'estimate_wear_batch', 'estimate_wear_map',
+           'canonical_curves', 'default_model', 'OUTPUT_NAMES', 'OUTPUT_UNITS']
 
 #: The network's outputs, in order (the reference's order: clearance, then overlap).
 OUTPUT_NAMES = ('radial_clearance_m', 'overlap_m')
@@ -118,23 +117,27 @@ def load_diagnostic(params: PlantParams | None = None, path: Path | None = None,
     ``params`` (default: the nominal parameters); ``ArtefactError`` otherwise."""
     p = params if params is not None else default_params()
     path = Path(path) if path is not None else models_dir('health') / 'diag.npz'
-    model = _load_cached(str(path.resolve()), path.stat().st_mtime_ns if path.is_file() else 0)
+    model = read_diagnostic(path)
     check_hash(model.meta, 'fluid_hash', fluid_hash(p), f'valve-test network {path.name}',
                REBUILD)
     return model
 
 
-@functools.lru_cache(maxsize=4)
-def _load_cached(path: str, mtime_ns: int) -> DiagnosticModel:
-    data, meta = load_artefact(Path(path), REBUILD)
+def _read_diagnostic(path: Path) -> DiagnosticModel:
+    data, meta = load_artefact(path, REBUILD)
     if meta.get('kind') != 'diag':
         raise ArtefactError(f'{path}: not a diagnostic network (kind {meta.get("kind")!r})')
     return DiagnosticModel.from_data(data, meta)
 
 
-@functools.lru_cache(maxsize=1)
-def _default_model() -> DiagnosticModel:
-    """The shipped network for the nominal parameters, loaded and checked once."""
+#: :func:`load_diagnostic`'s reader, once per state of the file
+#: (:class:`.artefacts.CachedReader`).
+read_diagnostic = CachedReader(_read_diagnostic)
+
+
+def default_model() -> DiagnosticModel:
+    """The shipped network, checked for the nominal parameters (read once per state of the
+    file, :data:`read_diagnostic`)."""
     return load_diagnostic()
 
 
@@ -163,7 +166,7 @@ def estimate_wear_batch(p12_curves_pa, q_m3_s, xs_m=None, model: DiagnosticModel
     q_m3_s : array (n,) or float
         Imposed flow [m^3/s] of each curve.
     """
-    m = model if model is not None else _default_model()
+    m = model if model is not None else default_model()
     p12 = _curves(m, p12_curves_pa, xs_m)
     q = np.broadcast_to(np.asarray(q_m3_s, dtype=float), (p12.shape[0],))
     out = m.forward(p12, np.ascontiguousarray(q))
@@ -217,7 +220,8 @@ def canonical_curves(p12_curves_pa, q_m3_s):
 
 class ValveTestEstimator:
     """Wear from the P12 curves of a diagnostic valve test (:mod:`eha_ros.physics.maintenance`)
-    by the diagnostic network (:mod:`.diagnostics`), method ``diagnostic-network``.
+    by the diagnostic network (:mod:`eha_ros.training.valve_test` builds it), method
+    ``diagnostic-network``.
 
     One estimate per curve; the wear is their median and the uncertainty their standard
     deviation, floored at the network's RMS error on held-out clean maps (recorded in its

@@ -43,7 +43,8 @@ from eha_ros.msg import ActuatorState, HealthStatus
 from eha_ros.physics import ParameterError, load_params
 from eha_ros.health.posterior import InServiceEstimator
 from eha_ros.health.thresholds import HealthThresholds
-from eha_ros.health.monitor import ITEM_UNITS, ITEMS, MonitorCore
+from eha_ros.health.monitor import (ITEM_UNITS, ITEMS, SETTLE_S, UPDATE_PERIOD_S, WINDOW_S,
+                                    MonitorCore)
 
 from .common import (advertise, apply_realtime_settings, declare, declare_realtime,
                      ns_to_stamp, run_node, stamp_to_ns, subscribe, TOPIC_DIAGNOSTICS,
@@ -100,11 +101,11 @@ class HealthMonitor(Node):
         self.model_name = declare(self, 'model', 'steady', 'valve model fitted in service: '
                                   'steady (the steady-state valve table) or a shipped 4-input '
                                   'surrogate (nn, lut)', choices=('steady', 'nn', 'lut'))
-        window_s = declare(self, 'window_s', 1.0, 'samples of the last window_s [s] are '
+        window_s = declare(self, 'window_s', WINDOW_S, 'samples of the last window_s [s] are '
                            'fitted', 0.01, 3600.0)
-        update_s = declare(self, 'update_period_s', 0.5, 'state time between estimates [s]',
-                           0.001, 3600.0)
-        settle_s = declare(self, 'settle_s', 0.05, 'state time ignored at start [s]', 0.0,
+        update_period_s = declare(self, 'update_period_s', UPDATE_PERIOD_S, 'state time '
+                                  'between estimates [s]', 0.001, 3600.0)
+        settle_s = declare(self, 'settle_s', SETTLE_S, 'state time ignored at start [s]', 0.0,
                            3600.0)
         self.hardware_id = declare(self, 'hardware_id', 'eha/servovalve', 'hardware_id of the '
                                    'DiagnosticStatus messages (the monitored unit)')
@@ -119,7 +120,7 @@ class HealthMonitor(Node):
         if self.model_name != 'steady':
             from eha_ros.surrogates.registry import load_surrogate
             model = load_surrogate(self.model_name, self.params).p12
-        self.core = MonitorCore(self.params, self.limits, window_s, update_s, settle_s,
+        self.core = MonitorCore(self.params, self.limits, window_s, update_period_s, settle_s,
                                 in_service=InServiceEstimator(self.params, model=model,
                                                               limits=self.limits))
         self._warm_up()
@@ -172,7 +173,7 @@ class HealthMonitor(Node):
         if 'window_s' in changes:
             self.core.window_s = float(changes['window_s'])
         if 'update_period_s' in changes:
-            self.core.update_s = float(changes['update_period_s'])
+            self.core.update_period_s = float(changes['update_period_s'])
         if 'stale_after_s' in changes:
             self.stale_after_s = float(changes['stale_after_s'])
         if 'hardware_id' in changes:

@@ -40,7 +40,7 @@ from .jack import quantise
 from .loop import (OPEN_LOOP, Clock, ClosedLoop, FluidBlock, diverged, fluid_kernels, pid,
                    record, run, run_split)
 from .params import ParameterError, PlantParams, default_params
-from .stability import EXPLICIT, check_dt, dt_to_ns, integrator_substeps
+from .stability import DT_S, EXPLICIT, check_dt, dt_to_ns, integrator_substeps
 from .state import N_REC, RECORD_FIELDS, S_SURF, STATE_NAMES, initial_state
 
 __all__ = ['NoiseSource', 'SimResult', 'Plant', 'PositionController', 'simulate']
@@ -101,7 +101,7 @@ class Plant:
     (the ROS plant node), by the ``integrator`` of :func:`simulate`.  ``advance`` over several
     calls is bit-identical to one call."""
 
-    def __init__(self, params: PlantParams | None = None, dt_s: float = 1e-6, seed: int = 0,
+    def __init__(self, params: PlantParams | None = None, dt_s: float = DT_S, seed: int = 0,
                  fluid: FluidBlock | None = None, integrator: str = EXPLICIT):
         self.params = params if params is not None else default_params()
         self.fluid = fluid
@@ -200,7 +200,7 @@ class PositionController:
 
 
 def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=None,
-             dt_s: float = 1e-6, seed: int = 0, controller_period_s: float | None = None,
+             dt_s: float = DT_S, seed: int = 0, controller_period_s: float | None = None,
              record_dt_s: float | None = 1e-4, fluid: FluidBlock | None = None,
              events=None, integrator: str = EXPLICIT) -> SimResult:
     """Closed-loop run: ``(params, scenario, duration, dt, seed) -> time histories``.

@@ -17,7 +17,11 @@ from .valve import fluid_constants, orifice_flow, valve_coefficients, valve_cons
 
 __all__ = ['Limit', 'FLAPPER', 'JACK_SPRING', 'JACK_VISCOUS', 'CHAMBER', 'SPOOL', 'FLUID',
            'stability_limits', 'stability_limit', 'dt_to_ns', 'check_dt', 'EXPLICIT', 'SPLIT',
-           'INTEGRATORS', 'SUBSTEP_S', 'integrator_substeps']
+           'INTEGRATORS', 'SUBSTEP_S', 'integrator_substeps', 'DT_S']
+
+#: The plant's step [s] by default: the reference's fixed step, the explicit scheme's
+#: yardstick (within its stability bounds at nominal parameters, :func:`stability_limits`).
+DT_S = 1e-6
 
 #: Keys of the bounds (:attr:`Limit.key`); ``FLUID`` is a surrogate's, in place of ``CHAMBER``.
 FLAPPER, JACK_SPRING, JACK_VISCOUS, CHAMBER, SPOOL, FLUID = (

@@ -20,7 +20,7 @@ from eha_ros.graph import normalize_type
 
 __all__ = ['PROFILE', 'SCHEMA_ENCODING', 'MESSAGE_ENCODING', 'RUN_METADATA_NAME',
            'ROSBAG2_METADATA_NAME', 'ROSBAG2_METADATA_VERSION', 'MCAP_MAGIC',
-           'PROGRESS_METADATA_NAME', 'RecordingError',
+           'PROGRESS_METADATA_NAME', 'MESSAGE_RECORD_OVERHEAD', 'RecordingError',
            'NotMcapError', 'TruncatedError', 'CorruptError', 'MissingTopicError',
            'message_definition', 'type_hash', 'qos_profile_dict', 'qos_profiles_yaml',
            'count_sequence_gaps', 'SequenceGapCounter', 'describe_source']
@@ -46,7 +46,7 @@ _PRIMITIVE_TYPES = frozenset((
 #: rmw's "infinite" duration, as rosbag2 writes it: {sec: 2**63 // 1e9, nsec: remainder}.
 _INFINITE = {'sec': 9223372036, 'nsec': 854775807}
 #: Bytes a message adds to a chunk besides its data (opcode, length, channel, sequence, times).
-_MESSAGE_RECORD_OVERHEAD = 1 + 8 + 2 + 4 + 8 + 8
+MESSAGE_RECORD_OVERHEAD = 1 + 8 + 2 + 4 + 8 + 8
 
 
 class RecordingError(Exception):

@@ -31,7 +31,7 @@ from mcap.writer import CompressionType, Writer
 import yaml
 
 from eha_ros.graph import normalize_type
-from eha_ros.recording.definitions import (_MESSAGE_RECORD_OVERHEAD, MESSAGE_ENCODING,
+from eha_ros.recording.definitions import (MESSAGE_RECORD_OVERHEAD, MESSAGE_ENCODING,
                                            message_definition, PROFILE,
                                            PROGRESS_METADATA_NAME, qos_profiles_yaml,
                                            ROSBAG2_METADATA_NAME, ROSBAG2_METADATA_VERSION,
@@ -205,7 +205,7 @@ class McapWriter:
             self._last_log_ns = log_time_ns
         if self._pending_bytes == 0:
             self._chunk_opened = time.monotonic()
-        self._pending_bytes += len(data) + _MESSAGE_RECORD_OVERHEAD
+        self._pending_bytes += len(data) + MESSAGE_RECORD_OVERHEAD
         if self._pending_bytes >= self._chunk_size or (
                 self._flush_interval_s is not None
                 and time.monotonic() - self._chunk_opened >= self._flush_interval_s):

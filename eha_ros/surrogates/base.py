@@ -5,7 +5,7 @@ normalisation, training data, the fluid-parameter hash it was built for) and a p
 ``(kernel, data)`` where ``kernel`` is a numba-jitted function
 ``kernel(data, xs_m, q_m3_s, overlap_m, clearance_m) -> p12_pa`` on scalars and ``data`` is a
 tuple of numpy arrays (tables, coefficients, weights).  The plant calls ``kernel`` inside its own
-jitted loop (the surrogate is a :class:`eha_ros.physics.fluid.FluidBlock`), so a scalar call
+jitted loop (the surrogate is a :class:`eha_ros.physics.loop.FluidBlock`), so a scalar call
 costs no Python overhead; :meth:`FluidSurrogate.p12` is the vectorised numpy-facing convenience.
 
 This module imports no other surrogate: :mod:`.registry` lists the kinds and loads artefacts

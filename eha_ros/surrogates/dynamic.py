@@ -40,7 +40,7 @@ Kernel interface (:func:`eha_ros.physics.loop.advance`, ``kernel_output`` CHAMBE
     :meth:`DynamicSurrogate.prepare` returns for the current wear and pressures (the
     clearance is folded in once per run or parameter change, not per step).
 
-Members (built by :mod:`.dynamic_train`)
+Members (built by :mod:`eha_ros.training.dynamic`)
     ``dlut``: table of ``ln G`` over (s, |dp|, ln c), collapsed to the run's clearance, then
     bilinear per step (below); ``dnn``: a network ``features -> ln G``, see
     below; ``dga``: a closed form designed from the physics of an annular orifice,
@@ -55,8 +55,8 @@ The ``dlut`` table
     Openings ``|s|``: ``2^e`` = 1.9 um, 32 cells per octave (cells of 0.06 um at the edge,
     then steps of 1.6-3.1 % to the end of the stroke), a row per sign, a node at 0 where the
     edge uncovers; ``|dp|``: ``2^e`` = 1 Pa, 16 cells per octave, up to ``DP_MAX_PA``
-    (``dynamic_train.DLUT_GRID``).  The cells hold ``q = G |dp|``, linear in the laminar
-    limit (``q ~ dp``) and bent by at most 1/32 of a cell's relative width squared in the
+    (``eha_ros.training.dynamic.DLUT_GRID``).  The cells hold ``q = G |dp|``, linear in the
+    laminar limit (``q ~ dp``) and bent by at most 1/32 of a cell's relative width squared in the
     turbulent one (``q ~ sqrt|dp|``; tabulating ``G sqrt|dp|`` over ``sqrt|dp|``, linear in
     both, would put a square root ahead of the table loads in every step).  Prepared for a
     clearance, each cell stores the four coefficients of its bilinear form contiguously.
@@ -72,7 +72,8 @@ The ``dnn`` network
     ``x (15 - 10 x^2 + 3 x^4) / 8`` on ``x = clip(z, -1, 1)`` (a polynomial: no
     transcendental per unit), a linear output plus a linear skip term of the inputs (the
     orifice law's log-log asymptotes are linear in these inputs, the hidden layers learn the
-    transitions).  Trained (:func:`.dynamic_train.build_dnn`) on the hf edge equations with
+    transitions).  Trained (:func:`eha_ros.training.dynamic.build_dnn`) on the hf edge equations
+    with
     most points where the loop lives (openings within ~10 um of the edge, drops up to 1.1 x
     supply).  :meth:`DnnSurrogate._prepare` folds the clearance's input (constant within a
     run) and the
@@ -852,7 +853,7 @@ class DnnSurrogate(DynamicSurrogate):
         """Fold the input and output normalisations and the clearance's feature (constant within
         a run) into the weights: the kernel's first layer sees the opening and pressure-drop
         features only, its output is ``ln G`` directly.  ``data = (sizes, input_norm, output_norm,
-        theta, [dp_scale_pa])`` (:func:`.dynamic_train.build_dnn`)."""
+        theta, [dp_scale_pa])`` (:func:`eha_ros.training.dynamic.build_dnn`)."""
         data, meta = self.data, self.meta
         sizes = [int(v) for v in data[0]]
         arch = meta.get('architecture', {})

@@ -15,9 +15,14 @@ Both give the numbers :func:`~eha_ros.evaluation.noise_free` and
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
+
+from eha_ros.evaluation import mean_sem
+
+from .engine import cluster
 
 __all__ = ['wear_inputs', 'noise_free_spec', 'noise_spec', 'run_comparison', 'noise_free_results',
            'noise_results']
@@ -123,11 +128,6 @@ def _signals(row) -> dict:
             if k.startswith('signal_') and v is not None}
 
 
-def _mean_sem(values) -> dict:
-    from eha_ros.evaluation import _mean_sem
-    return _mean_sem(values)
-
-
 def noise_results(table, models) -> dict:
     """``{scenario: result}`` with each result as :func:`evaluation.with_noise` returns it."""
     rows = _rows(table)
@@ -141,8 +141,8 @@ def noise_results(table, models) -> dict:
                                f'{bad[0]["error"]}')
         spread = [{'jack': r['seed_spread_jack'], 'p12': r['seed_spread_p12']} for r in hf]
         same = [{'jack': r['cd_plus_0p1pct_jack'], 'p12': r['cd_plus_0p1pct_p12']} for r in hf]
-        res = {'seeds': len(hf), 'hf_seed_to_seed': _mean_sem(spread),
-               'hf_cd_plus_0.1%_same_seed': _mean_sem(same), 'models': {}}
+        res = {'seeds': len(hf), 'hf_seed_to_seed': mean_sem(spread),
+               'hf_cd_plus_0.1%_same_seed': mean_sem(same), 'models': {}}
         limit = {q: 1.5 * res['hf_seed_to_seed'][q] for q in ('jack', 'p12')}
         for m in models:
             if m == 'hf':
@@ -152,8 +152,8 @@ def noise_results(table, models) -> dict:
             if failed:
                 res['models'][m] = {'error': failed[0]['error']}
                 continue
-            e = _mean_sem([{'jack': r['jack_rel_error'], 'p12': r['p12_rel_error']}
-                           for r in mr])
+            e = mean_sem([{'jack': r['jack_rel_error'], 'p12': r['p12_rel_error']}
+                          for r in mr])
             e['meets'] = bool(e['jack'] <= limit['jack'] and e['p12'] <= limit['p12'])
             res['models'][m] = e
         out[sc] = res
@@ -174,22 +174,14 @@ def run_comparison(folder, scenarios, wear_points: dict, models, noise_models=()
     if noise_models and seeds > 0:
         specs.append(('noise', parse_spec(noise_spec(scenarios, noise_models, seeds),
                                           source='in-loop comparison, noise on')))
-    client = cluster = None
     sweeps, out = {}, {'noise_free': {}, 'noise': {}}
-    try:
-        if not in_process:
-            from .engine import _client
-            import os
-            client, cluster = _client(int(workers or os.cpu_count() or 1), None)
+    with contextlib.ExitStack() as stack:
+        client = None if in_process else stack.enter_context(cluster(workers))
         for name, spec in specs:
             d = folder / name
             sweeps[name] = run_sweep(spec, d, in_process=in_process, client=client,
                                      resume=d.is_dir() and any(d.iterdir()), warm=warm,
                                      progress=progress)
-    finally:
-        if client is not None:
-            from .engine import _close
-            _close(client, cluster)
     out['noise_free'] = noise_free_results(read_dataset(folder / 'noise_free'), wear_points,
                                            keep_signals=bool(signals))
     if len(specs) > 1:

@@ -23,6 +23,7 @@ in the folder.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import signal
@@ -33,7 +34,8 @@ from pathlib import Path
 from .dataset import SPEC_FILE, SweepError, done_case_ids, parts, schema, write_batch
 from .spec import Spec
 
-__all__ = ['run_sweep', 'run_batch', 'SweepInterrupted', 'Batcher', 'Progress']
+__all__ = ['run_sweep', 'run_batch', 'cluster', 'warm_up', 'worker_procedure', 'SweepInterrupted',
+           'Batcher', 'Progress']
 
 _WORKER_SPECS = {}
 
@@ -54,8 +56,9 @@ def _worker_name() -> str:
         return 'local'
 
 
-def _procedure(raw: dict, base: dict):
-    """The worker's procedure for a spec (parsed once per worker and spec)."""
+def worker_procedure(raw: dict, base: dict):
+    """The procedure of the spec ``raw`` over ``base`` as a worker runs it (parsed once per
+    process and spec)."""
     import json
     key = json.dumps([raw, base], sort_keys=True, default=str)
     proc = _WORKER_SPECS.get(key)
@@ -71,7 +74,7 @@ def _procedure(raw: dict, base: dict):
 
 def run_batch(raw: dict, base: dict, points: list) -> list:
     """Rows of every case of ``points`` (the task a worker runs)."""
-    proc = _procedure(raw, base)
+    proc = worker_procedure(raw, base)
     spec = proc.spec
     worker = _worker_name()
     rows = []
@@ -86,7 +89,7 @@ def run_batch(raw: dict, base: dict, points: list) -> list:
 def warm_up(raw: dict, base: dict) -> str:
     """Load every model of the spec and compile its kernels, so that timing columns leave
     JIT compilation out."""
-    _procedure(raw, base).warm_up()
+    worker_procedure(raw, base).warm_up()
     return _worker_name()
 
 
@@ -354,6 +357,18 @@ def _run_dask(client, raw, base, batches: Batcher, finished) -> None:
     finally:
         if futures:
             client.cancel(list(futures))
+
+
+@contextlib.contextmanager
+def cluster(workers: int | None = None, scheduler: str | None = None):
+    """``with cluster(workers) as client:`` a ``distributed.Client`` for :func:`run_sweep`'s
+    ``client``: connected to ``scheduler``, or to a LocalCluster of ``workers`` (default: the
+    cores of this machine) single-threaded processes started here and closed on leaving."""
+    client, local = _client(int(workers or os.cpu_count() or 1), scheduler)
+    try:
+        yield client
+    finally:
+        _close(client, local)
 
 
 def _close(client, cluster) -> None:

@@ -44,7 +44,7 @@ import numpy as np
 
 from eha_ros.physics import ParameterError, get_scenario, params_to_dict
 from eha_ros.physics.params import SPEC_BY_NAME
-from eha_ros.physics.stability import EXPLICIT, INTEGRATORS, SPLIT
+from eha_ros.physics.stability import DT_S, EXPLICIT, INTEGRATORS, SPLIT
 
 from .errors import SpecError, label
 
@@ -58,8 +58,6 @@ MAX_CASES = 100_000
 KEYS = ('procedure', 'scenario', 'models', 'seeds', 'noise', 'parameters', 'random', 'tie',
         'cases', 'compare', 'large_dts', 'dt_s', 'signals', 'signal_dt_s', 'metrics',
         'flows_m3_s', 'valve_test_procedure', 'pressure_noise', 'split_dts', 'integrator')
-#: Plant step of every procedure [s] (the reference's, and the in-loop comparison's).
-DT_S = 1e-6
 
 
 @dataclasses.dataclass(frozen=True)

@@ -145,7 +145,7 @@ def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=GRAPH_MODELS,
         result = compare_runs(loaded, reference=0)
         plot_runs(loaded, out / sc)
         table[sc] = {r['label']: r['relative_error'] for r in result['runs']}
-        diagnoses[sc] = diagnose(str(out / f'{sc}_hf.mcap'), update_s=HEALTH_PERIOD_S)
+        diagnoses[sc] = diagnose(str(out / f'{sc}_hf.mcap'), update_period_s=HEALTH_PERIOD_S)
     comparison = _finish_comparison(comparer, out / 'comparison') if comparer else {}
     summary = {'models': models, 'scenarios': list(scenarios),
                'wall_s': round(time.monotonic() - t_start, 1),
@@ -162,7 +162,7 @@ def _health_verdict(path: Path, diagnose) -> dict:
     """The live monitor's last verdict from a recording, and whether the offline replay of its
     states gives the same messages."""
     try:
-        d = diagnose(str(path), update_s=HEALTH_PERIOD_S)
+        d = diagnose(str(path), update_period_s=HEALTH_PERIOD_S)
     except ParameterError as exc:
         return {'level': 'n/a', 'message': f'no estimate: {exc}', 'kind': '',
                 'live_messages': 0, 'live_agrees': None}

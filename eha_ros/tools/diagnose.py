@@ -12,8 +12,9 @@ monitor's ``/eha/health`` too, every recorded message is compared with the repla
 ``--method``: ``auto`` (everything the recording supports: valve test, pre-flight check, else
 the in-service estimates), ``test`` (the recording must hold a valve test or a pre-flight
 check), ``network`` (a valve test), ``preflight`` (a pre-flight check) or ``steady`` (the
-in-service estimate only).  ``--window S`` / ``--update S`` / ``--skip S``: the monitor's
-``window_s``, ``update_period_s`` and ``settle_s``.
+in-service estimate only).  ``--window-s S`` / ``--update-period-s S`` / ``--settle-s S``: the
+monitor's ``window_s``, ``update_period_s`` and ``settle_s`` (defaults:
+:mod:`eha_ros.health.monitor`).
 
 Bad input (missing, truncated, corrupt or non-MCAP file, no ``/eha/state`` topic, no or an
 incomplete test segment where one is required, too few samples) ends with one line on stderr
@@ -36,7 +37,7 @@ from eha_ros.physics import ParameterError, load_params
 from eha_ros.recording.arrays import load_for_tool
 from eha_ros.recording.definitions import RecordingError
 from eha_ros.health.thresholds import HealthThresholds
-from eha_ros.health.monitor import ITEMS, MonitorCore
+from eha_ros.health.monitor import ITEMS, SETTLE_S, UPDATE_PERIOD_S, WINDOW_S, MonitorCore
 
 METHODS = ('auto', 'test', 'network', 'preflight', 'steady')
 _STATE_FIELDS = ('status', 'sim_time_s', 'spool_position_m', 'load_flow_m3_s', 'p12_pa',
@@ -92,8 +93,9 @@ def compare_live(recorded: list, reports: list, core_items: list) -> dict:
             'live_mismatches': mism[:5]}
 
 
-def diagnose(path, params=None, method: str = 'auto', window_s: float = 1.0,
-             update_s: float = 0.5, skip_s: float = 0.05, limits=None) -> dict:
+def diagnose(path, params=None, method: str = 'auto', window_s: float = WINDOW_S,
+             update_period_s: float = UPDATE_PERIOD_S, settle_s: float = SETTLE_S,
+             limits=None) -> dict:
     """Replay the recording at ``path``; a dict of what the monitor reports (see the module
     docstring).  Raises ParameterError on bad input."""
     if method not in METHODS:
@@ -134,7 +136,7 @@ def diagnose(path, params=None, method: str = 'auto', window_s: float = 1.0,
         states[f] = np.full(states['stamp_ns'].size, _OPTIONAL_FIELDS[f])
     if states['stamp_ns'].size == 0:
         raise ParameterError(f'{path}: no {TOPIC_STATE} samples for method {method}')
-    core = MonitorCore(params, limits, window_s, update_s, skip_s)
+    core = MonitorCore(params, limits, window_s, update_period_s, settle_s)
     reports = []
     snapshots = []   # every parameter's (value, std) after each report, as published
     fields = _STATE_FIELDS + tuple(_OPTIONAL_FIELDS)
@@ -159,7 +161,7 @@ def diagnose(path, params=None, method: str = 'auto', window_s: float = 1.0,
             raise ParameterError(f'{path}: the test segment is incomplete (cut before its end)')
     if not reports:
         raise ParameterError(f'{path}: too short for an estimate ({stamps.size} states, the '
-                             f'first after {update_s:g} s)')
+                             f'first after {update_period_s:g} s)')
     chosen = ([r for r in reports if r.kind in test_kinds] or reports)[-1]
     if chosen.message.startswith('no estimate'):
         raise ParameterError(f'{path}: {chosen.message}')
@@ -193,19 +195,23 @@ def main(argv=None) -> int:
                     help='auto: all the recording supports; test: valve test and/or '
                     'pre-flight check required; network: valve test; preflight: pre-flight '
                     'check; steady: in-service only')
-    ap.add_argument('--window', type=float, default=1.0, help='in-service window [s]')
-    ap.add_argument('--update', type=float, default=0.5, help='in-service period [s]')
-    ap.add_argument('--skip', type=float, default=0.05, help='state time ignored at start [s]')
+    ap.add_argument('--window-s', type=float, default=WINDOW_S,
+                    help='in-service window [s]')
+    ap.add_argument('--update-period-s', type=float, default=UPDATE_PERIOD_S,
+                    help='in-service period [s]')
+    ap.add_argument('--settle-s', type=float, default=SETTLE_S,
+                    help='state time ignored at start [s]')
     ap.add_argument('--params', default=None, help='physical parameter YAML')
     ap.add_argument('--thresholds', default=None, help='health threshold YAML')
     ap.add_argument('--json', action='store_true')
     args = ap.parse_args(argv)
     try:
-        for name, v in (('--window', args.window), ('--update', args.update)):
+        for name, v in (('--window-s', args.window_s),
+                        ('--update-period-s', args.update_period_s)):
             if not (v > 0 and math.isfinite(v)):
                 raise ParameterError(f'{name} = {v} must be a positive number of seconds')
-        r = diagnose(args.file, load_params(args.params), args.method, args.window,
-                     args.update, args.skip, HealthThresholds.load(args.thresholds))
+        r = diagnose(args.file, load_params(args.params), args.method, args.window_s,
+                     args.update_period_s, args.settle_s, HealthThresholds.load(args.thresholds))
     except (ParameterError, ValueError) as exc:
         print(f'eha-diagnose: error: {" ".join(str(exc).split())}', file=sys.stderr)
         return 2

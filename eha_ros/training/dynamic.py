@@ -350,7 +350,7 @@ def build_dnn(params: PlantParams | None = None, settings: dict | None = None,
               threads: int = 2, verbose: bool = False):
     """Train the edge network ``features -> ln G`` (:func:`.dynamic.dnn_features`: the open
     and covered opening in units of the clearance, the pressure drop, the clearance, all
-    logarithmic; quintic activation and a linear skip term, :func:`.training.fit_network`)
+    logarithmic; quintic activation and a linear skip term, :func:`.networks.fit_network`)
     on points drawn over the validity (:func:`sample_points`), where the loop lives
     (:func:`loop_points`) and at the null of a worn valve (:func:`null_points`); returns
     ``(data, meta)``."""

@@ -1,6 +1,6 @@
 """Training of the project's networks (torch, imported inside the functions only): the fluid
 surrogates of :mod:`eha_ros.training.nn`, the dynamic edge network of :mod:`.dynamic` and the
-wear-diagnosis network of :mod:`.diagnostics` all train through :func:`fit_network`.
+wear-diagnosis network of :mod:`.valve_test` all train through :func:`fit_network`.
 
 Model
     :func:`make_torch_mlp`: an MLP (float64, tanh hidden layers unless told otherwise, linear

@@ -8,7 +8,7 @@ Data
     validation and testing, the same pairs in both databases.  ``nn2`` is trained on DB5 with
     every 7th flow curve held out for testing (the next one for validation).
 
-Training (torch through :func:`.training.fit_network`, imported inside the functions only)
+Training (torch through :func:`.networks.fit_network`, imported inside the functions only)
     Levenberg-Marquardt (as MATLAB's ``trainlm``) and Adam followed by L-BFGS, both on the mean
     squared error of the normalised output (a loss weighted by ``1 / ||map||^2``, the metric's
     own weighting, was measured and not kept: it trades DB2's accuracy for DB3's at a loss

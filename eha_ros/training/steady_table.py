@@ -13,7 +13,7 @@ import numpy as np
 from eha_ros.artefacts import models_dir, save_artefact
 from eha_ros.health.steady_table import (CLEARANCE_STEP_M, N_Q, N_XS, OVERLAP_STEP_M,
                                          Q_MAX_M3_S, Q_SCALE_M3_S, TABLE_FILE, XS_MAX_M,
-                                         XS_SCALE_M, SteadyTable, _axis)
+                                         XS_SCALE_M, SteadyTable, sinh_axis)
 from eha_ros.physics import PlantParams, default_params
 from eha_ros.physics.maps import WEAR_RANGES, fluid_hash, steady_map
 
@@ -26,8 +26,8 @@ def build_steady_table(params: PlantParams | None = None, progress=print) -> Ste
     (l0, l1), (c0, c1) = WEAR_RANGES['overlap_m'], WEAR_RANGES['radial_clearance_m']
     laps = np.round(np.arange(l0, l1 + 1e-12, OVERLAP_STEP_M), 12)
     clrs = np.round(np.arange(c0, c1 + 1e-12, CLEARANCE_STEP_M), 12)
-    xs = _axis(XS_MAX_M, XS_SCALE_M, N_XS)
-    q = _axis(Q_MAX_M3_S, Q_SCALE_M3_S, N_Q)
+    xs = sinh_axis(XS_MAX_M, XS_SCALE_M, N_XS)
+    q = sinh_axis(Q_MAX_M3_S, Q_SCALE_M3_S, N_Q)
     xg, qg = np.meshgrid(xs, q, indexing='ij')
     out = np.empty((laps.size, clrs.size, xs.size, q.size))
     t0 = time.perf_counter()

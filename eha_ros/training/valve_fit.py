@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from eha_ros.artefacts import models_dir, save_artefact
-from eha_ros.health.valve_fit import FIT_FILE, FIT_NAMES, _load_cached
+from eha_ros.health.valve_fit import FIT_FILE, FIT_NAMES, read_calibration
 from eha_ros.physics import default_params, params_to_dict
 from eha_ros.physics.bench import load_bench
 from eha_ros.physics.maps import WEAR_RANGES
@@ -149,7 +149,7 @@ def build_artefact(workers: int = 2, out: Path | None = None, progress=print) ->
     # file, which holds that stage only while the sweeps run (restored if they fail)
     before = shipped.read_bytes() if shipped.is_file() else None
     save_artefact(shipped, (ident, np.array([np.inf])), dict(meta, stage='uncalibrated'))
-    _load_cached.cache_clear()
+    read_calibration.clear()
     done = False
     try:
         half = N_CAL // 2
@@ -163,7 +163,7 @@ def build_artefact(workers: int = 2, out: Path | None = None, progress=print) ->
                 shipped.unlink()
             else:
                 shipped.write_bytes(before)
-            _load_cached.cache_clear()
+            read_calibration.clear()
     import pyarrow as pa
     table = pa.concat_tables([clean, noisy])
     factors, chi_limit, figures = calibrate(table, cases, ident)
@@ -179,7 +179,7 @@ def build_artefact(workers: int = 2, out: Path | None = None, progress=print) ->
         'chi_limit': chi_limit, 'chi_margin': _CHI_MARGIN, 'figures': figures,
         'build_s': round(time.perf_counter() - t0, 1)})
     save_artefact(path, (factors, np.array([chi_limit])), meta)
-    _load_cached.cache_clear()
+    read_calibration.clear()
     progress(f'{path}: factors {meta["factors"]}, chi limit {chi_limit:.3g} '
              f'({figures})')
     return path

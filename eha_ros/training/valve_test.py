@@ -25,7 +25,7 @@ import numpy as np
 
 from eha_ros.artefacts import models_dir, save_artefact
 from eha_ros.health.valve_test import (OUTPUT_NAMES, OUTPUT_UNITS, DiagnosticModel,
-                                       _default_model, _load_cached, canonical_curves)
+                                       canonical_curves, read_diagnostic)
 from eha_ros.physics import PlantParams, default_params
 from eha_ros.physics.maps import WEAR_RANGES, fluid_hash
 from eha_ros.training.database import Database, get_database
@@ -114,7 +114,7 @@ def _half(curves, q, wear):
 
 
 def _train_one(x_tr, y_tr, x_va, y_va, *, hidden, algorithm, seed, settings, threads):
-    """Fit normalisation on the training split, train (:func:`.training.fit_network`), return
+    """Fit normalisation on the training split, train (:func:`.networks.fit_network`), return
     ``(weights, in_norm, out_norm, history, wall_s)``."""
     in_norm, out_norm = minmax(x_tr), minmax(y_tr)
     net, hist, wall = fit_network(
@@ -210,8 +210,7 @@ def build_artefact(params: PlantParams | None = None, out_dir: Path | None = Non
         'errors': ref.meta['errors']}}
     path = (Path(out_dir) if out_dir is not None else models_dir('health')) / 'diag.npz'
     save_artefact(path, model.data(), model.meta)
-    _load_cached.cache_clear()
-    _default_model.cache_clear()
+    read_diagnostic.clear()
     return path
 
 
