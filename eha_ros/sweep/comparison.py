@@ -175,8 +175,7 @@ def run_comparison(folder, scenarios, wear_points: dict, models, noise_models=()
         specs.append(('noise', parse_spec(noise_spec(scenarios, noise_models, seeds),
                                           source='in-loop comparison, noise on')))
     sweeps, out = {}, {'noise_free': {}, 'noise': {}}
-    with contextlib.ExitStack() as stack:
-        client = None if in_process else stack.enter_context(cluster(workers))
+    with contextlib.nullcontext() if in_process else cluster(workers) as client:
         for name, spec in specs:
             d = folder / name
             sweeps[name] = run_sweep(spec, d, in_process=in_process, client=client,
