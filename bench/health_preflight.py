@@ -1,7 +1,7 @@
 """The pre-flight fault network under drift: accuracy, coverage, false alarms and refusals.
 
 Every case runs the high-fidelity plant's pre-flight check as one sweep
-(:class:`eha_ros.sweep.procedures.PreflightProcedure`: the network's estimates with the
+(:class:`eha_ros.health.procedures.PreflightProcedure`: the network's estimates with the
 conditions the bench measures, its OOD score and mismatch flag), on streams used neither for
 training nor calibration nor the OOD limit (:mod:`eha_ros.training.preflight`: 21-24):
 

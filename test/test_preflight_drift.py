@@ -175,7 +175,7 @@ def test_bad_input_is_refused_in_one_line(model, nominal_check):
 def test_the_sweep_procedure_reports_the_network_and_its_checks():
     """The ``preflight_check`` procedure's metrics follow the five faults and add the OOD
     score and the mismatch flag."""
-    from eha_ros.sweep.procedures import PreflightProcedure
+    from eha_ros.health.procedures import PreflightProcedure
     names = dict(PreflightProcedure.metrics())
     assert {f'est_{n}' for n in FAULT_NAMES} <= set(names)
     assert names['ood_score'] == 'float' and names['mismatch'] == 'bool'

@@ -92,7 +92,8 @@ def test_lm_fits_small_regression_and_beats_gradient_descent():
     x, y = _tiny_problem()
     lm = networks.make_torch_mlp(d_in=1, d_hidden=[6], seed=0)
     start = networks._mse(lm, x, y)
-    hist = networks.train_lm(lm, x, y, epochs=60, threads=1)
+    hist = networks.train_lm(lm, networks.Split(x, y), networks.LMSettings(epochs=60),
+                             threads=1)
     loss_lm = networks._mse(lm, x, y)
     assert hist['epochs'] == 60 or hist['stop'] in ('mu_max', 'min_grad')
     assert loss_lm < 1e-6 * start
@@ -115,11 +116,14 @@ def test_training_is_reproducible(algorithm):
     for _ in range(2):
         model = networks.make_torch_mlp(d_in=1, d_hidden=[4, 3], seed=7)
         if algorithm == 'lm':
-            networks.train_lm(model, x, y, x_val=x[::3], y_val=y[::3], epochs=20, subsample=64,
-                              resample_every=5, seed=7, threads=1)
+            networks.train_lm(model, networks.Split(x, y, x[::3], y[::3]),
+                              networks.LMSettings(epochs=20, subsample=64, resample_every=5),
+                              seed=7, threads=1)
         else:
-            networks.train_adam_lbfgs(model, x, y, x_val=x[::3], y_val=y[::3], adam_steps=50,
-                                      batch=32, lbfgs_iters=20, val_every=10, seed=7, threads=1)
+            networks.train_adam_lbfgs(model, networks.Split(x, y, x[::3], y[::3]),
+                                      networks.AdamLBFGSSettings(adam_steps=50, batch=32,
+                                                                 lbfgs_iters=20, val_every=10),
+                                      seed=7, threads=1)
         thetas.append(model.theta.detach().numpy().copy())
     np.testing.assert_array_equal(thetas[0], thetas[1])
 
@@ -219,15 +223,15 @@ def test_both_network_families_train_through_one_trainer():
     raw = _random_inputs(300, rng)
     y = np.sin(raw[:, 0] / 1e-4) * 1e7 + raw[:, 1] * 1e11
     st = {'epochs': 5, 'subsample': 1000}
-    data, _, _, _ = nn_train._fit_model(raw, y, raw[::3], y[::3], sources=[0, 1],
-                                        transforms=['linear', 'linear'], scales=None,
-                                        hidden=[5], algorithm='lm', seed=4, settings=st,
-                                        threads=1)
+    data, _, _, _ = nn_train._fit_model(networks.Split(raw, y, raw[::3], y[::3]),
+                                        ([0, 1], ['linear', 'linear'], None), hidden=[5],
+                                        algorithm='lm', seed=4, settings=st, threads=1)
     inputs, output = nn.fit_inputs(raw, [0, 1], ['linear', 'linear']), nn.fit_output(y)
-    ref, _, _ = networks.fit_network(nn.transform_inputs(inputs, raw),
-                                     (y - output[0]) / output[1],
-                                     nn.transform_inputs(inputs, raw[::3]),
-                                     (y[::3] - output[0]) / output[1], hidden=[5],
+    ref, _, _ = networks.fit_network(networks.Split(nn.transform_inputs(inputs, raw),
+                                                    (y - output[0]) / output[1],
+                                                    nn.transform_inputs(inputs, raw[::3]),
+                                                    (y[::3] - output[0]) / output[1]),
+                                     hidden=[5],
                                      algorithm='lm', seed=4, settings=st, threads=1)
     np.testing.assert_array_equal(data[3], ref.theta.detach().numpy())
     x2 = np.stack([raw[:, 0], raw[:, 1] * 3.0], axis=1)
@@ -235,9 +239,11 @@ def test_both_network_families_train_through_one_trainer():
     weights, in_norm, out_norm, _, _ = valve_test_training._train_one(
         x2, y2, x2[::3], y2[::3], hidden=[5], algorithm='lm', seed=4, settings=st, threads=1)
     in2, out2 = networks.minmax(x2), networks.minmax(y2)
-    ref2, _, _ = networks.fit_network((x2 - in2[0]) / in2[1], (y2 - out2[0]) / out2[1],
-                                      (x2[::3] - in2[0]) / in2[1],
-                                      (y2[::3] - out2[0]) / out2[1], hidden=[5],
+    ref2, _, _ = networks.fit_network(networks.Split((x2 - in2[0]) / in2[1],
+                                                     (y2 - out2[0]) / out2[1],
+                                                     (x2[::3] - in2[0]) / in2[1],
+                                                     (y2[::3] - out2[0]) / out2[1]),
+                                      hidden=[5],
                                       algorithm='lm', seed=4, settings=st, threads=1)
     for (w, b), (wr, br) in zip(weights, ref2.layers()):
         np.testing.assert_array_equal(w, wr.detach().numpy())

@@ -418,3 +418,19 @@ def test_a_local_cluster_gives_its_workers_one_numba_thread_and_leaves_this_proc
         _close(client, cluster)
     assert list(seen.values()) == [before or '1']
     assert os.environ.get('NUMBA_NUM_THREADS') == before
+
+
+def test_the_valve_test_keeps_its_curves_whole():
+    """A valve-test case's kept P12 is every curve whole, at the schedule's points and flows
+    (the test runs in holds, not in ticks: no signal interval applies), and the spec's one
+    procedure declares that column and runs the point."""
+    from eha_ros.physics.maintenance import valve_test_schedule
+    spec = parse_spec({'procedure': 'valve_test', 'signals': ['p12_pa']})
+    assert ('signal_p12_pa', 'floats') in spec.proc.columns()
+    (row,) = spec.proc.run_point(spec.points()[0])
+    assert row['status'] == 'ok', row['error']
+    sch = valve_test_schedule('reference')
+    assert row['signal_p12_pa'].shape == (sch['n_points'] * len(sch['flows_m3_s']),)
+    assert np.all(np.isfinite(row['signal_p12_pa']))
+    with pytest.raises(SpecError, match='keeps its P12 curves whole'):
+        parse_spec({'procedure': 'valve_test', 'signals': ['p12_pa'], 'signal_dt_s': 1e-2})

@@ -37,6 +37,7 @@ physics-only closed loop.  Parameters: ``kp_a_m``, ``ki_a_m_s``, ``kd_a_s_m``,
 from __future__ import annotations
 
 import math
+from contextlib import nullcontext
 import time
 
 from rclpy.node import Node
@@ -127,7 +128,7 @@ class Controller(Node):
         else:
             refuse_loop_options(loop_options, 'a controller clocked by states (trigger: state) '
                                 'or in lockstep')
-        self._lock = self.rt_loop.lock if self.rt_loop is not None else _NoLock()
+        self._lock = self.rt_loop.lock if self.rt_loop is not None else nullcontext()
         self._warm_up_s = (time.monotonic_ns() - init_ns) * 1e-9
         if self.rt_loop is not None:
             self.rt_loop.apply_process_settings()
@@ -309,16 +310,6 @@ class Controller(Node):
         self._send(stamp, current)
         self.timing.tick(began)
         self.timing.busy(began)
-
-
-class _NoLock:
-    """Every step runs in the executor's thread: nothing to lock."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
 
 
 def main(args=None) -> int:

@@ -73,7 +73,9 @@ is refused with the reason.
 from __future__ import annotations
 
 import math
+from contextlib import nullcontext
 import time
+from types import SimpleNamespace
 
 from rclpy.clock import Clock as RosClock
 from rclpy.clock import ClockType
@@ -124,6 +126,113 @@ class ServovalvePlant(Node):
     def __init__(self, **kwargs):
         init_ns = time.monotonic_ns()
         super().__init__('servovalve_plant', **kwargs)
+        s = self._declare_parameters()
+        base, dt_s, integrator, rate, seed = s.base, s.dt_s, s.integrator, s.rate, s.seed
+        events, realtime, loop_options, procedure = s.events, s.realtime, s.loop_options, \
+            s.procedure
+        if self.mode not in MODES:
+            raise ParameterError(f'mode {self.mode!r} must be one of {", ".join(MODES)}')
+        params = replace(base, **{n: self.get_parameter(n).value for n in PLANT_RUNTIME})
+        self.fluid = load_fluid(self.model, params)
+        self.plant = Plant(params, dt_s=dt_s, seed=seed, fluid=self.fluid,
+                           integrator=integrator)
+        Plant(params, dt_s=dt_s, seed=seed, fluid=self.fluid,  # JIT first
+              integrator=integrator).advance(0.0, 1)
+        period_ns = round(1e9 / rate)
+        if period_ns % self.plant.dt_ns:
+            raise ParameterError(f'the tick period {period_ns} ns must be a whole number of '
+                                 f'dt_s = {dt_s:g} s')
+        self.period_ns = period_ns
+        self.command_watchdog = TickWatchdog(s.command_timeout_s, period_ns, s.timeout_action)
+        self._fresh = False      # a current command arrived since the last tick
+        self._unanswered_since = None  # realtime: first state published since the last command
+        self._missing = False    # lockstep: the last tick's command was missing
+        self.stopped = False     # the watchdog's stop action ended the run
+        self.schedule = EventSchedule([parse_event(e) for e in events if e.strip()],
+                                      allowed=PLANT_RUNTIME, period_ns=period_ns)
+        self.schedule.validate(params)
+        for ev in self.schedule:
+            if self.fluid is not None:
+                self.fluid.check_params(replace(params, **ev.as_dict()))
+        self.steps_per_tick = period_ns // self.plant.dt_ns
+        if procedure not in VALVE_TEST_PROCEDURES:
+            raise ParameterError(f'valve_test_procedure {procedure!r} must be one of '
+                                 f'{", ".join(VALVE_TEST_PROCEDURES)}')
+        self.valve_test = (ValveTest.of(procedure, period_ns, dt_s, s.flows) if s.valve_test
+                           else None)
+        # the test bench's transducers of the conditions: one reading per published tick
+        self.sensors = ConditionSensors(seed, load_bench())
+        self.conditions = self.sensors.read(params)[0]
+        self.test_tick = 0
+        self.test_sample = None
+        if self.valve_test is not None:
+            self.valve_test.sample(1, params)  # JIT first
+        self.preflight = (PreflightCheck(period_ns, params.current_limit_a) if s.preflight
+                          else None)
+        self.preflight_tick = 0
+        self.preflight_last = -1   # self.ticks of the last pre-flight tick
+        self.events = EventChannel(self, period_ns)
+        self.add_on_set_parameters_callback(validator(self._on_set))
+        self.state_pub = advertise(self, ActuatorState, TOPIC_STATE)
+        self._command_node = None
+        if self.mode == 'realtime':
+            # read by the tick loop itself (take), on a node that no executor spins: the
+            # executor's thread would otherwise take the GIL for every command, 1 kHz of
+            # hand-overs with the loop's thread
+            self._command_node = Node(self.get_name() + '_commands', context=self.context,
+                                      start_parameter_services=False)
+            command_sub = subscribe(self._command_node, ServovalveCommand, TOPIC_SERVOVALVE,
+                                    lambda msg: None)
+            self._command_sub = command_sub
+        else:
+            command_sub = subscribe(self, ServovalveCommand, TOPIC_SERVOVALVE,
+                                    self._on_command)
+        self.current_a = 0.0
+        self.done = False
+        self.diverged = False
+        self.ticks = 0
+        self.fatal = None
+        self._msg = None
+        self.timing = TickTiming(self, rate, self.mode == 'realtime')
+        steady = RosClock(clock_type=ClockType.STEADY_TIME)
+        self._steady = steady
+        self._started = False
+        self._last_pub_ns = 0
+        self._first_pub_ns, self._pub_tick_ns = 0, -1   # lockstep: the tick's first publication
+        self.slipped_ticks = 0
+        if self.mode == 'lockstep':
+            self.clock_pub = advertise(self, Clock, TOPIC_CLOCK)
+        self.handshake = StartCoordinator(self, s.handshake_nodes, self.mode,
+                                          s.handshake_timeout_s, s.start_delay_s,
+                                          on_start=self._on_start)
+        for entity, topic in ((self.state_pub, TOPIC_STATE), (command_sub, TOPIC_SERVOVALVE),
+                              (self.timing.pub, '/diagnostics')):
+            self.handshake.watch(entity, topic)
+        if self.mode == 'lockstep':
+            self.handshake.watch(self.clock_pub, TOPIC_CLOCK)
+        self._watchdog = self.create_timer(0.01, self._on_watchdog, clock=steady)
+        self.rt_loop = None
+        if self.mode == 'realtime':  # the tick in a thread of its own
+            self.rt_loop = NodeLoop(self, period_ns, self._on_loop_wake, realtime, loop_options)
+            self.timing.lock = self.rt_loop.lock
+        else:
+            refuse_loop_options(loop_options, 'a lockstep plant')
+        self._lock = self.rt_loop.lock if self.rt_loop else nullcontext()
+        self._warm_up_s = (time.monotonic_ns() - init_ns) * 1e-9
+        if self.rt_loop is not None:
+            self._state_msg()  # the state message's first fill now, not in tick 0
+            self.rt_loop.apply_process_settings()
+        else:
+            apply_realtime_settings(self, realtime)
+        self.get_logger().info(f'model {self.model}, dt {dt_s:g} s ({integrator}), '
+                               f'{self.steps_per_tick} '
+                               f'steps per tick, {self.mode}; waiting for '
+                               f'{", ".join(self.handshake.nodes)}')
+
+    def _declare_parameters(self) -> SimpleNamespace:
+        """Declare every parameter of the node (the physical ones through
+        :func:`.common.declare_physics`); returns the settings the constructor uses, the
+        nominal parameters ``base`` among them."""
         path = declare(self, 'params_file', '', 'physical parameter YAML (empty: the installed '
                        'config/eha_params.yaml)')
         base = load_params(path or None)
@@ -176,104 +285,13 @@ class ServovalvePlant(Node):
         self.command_wait_s = declare(self, 'command_wait_s', 10.0, 'lockstep: a tick whose '
                                       'command has not come this long after its state counts '
                                       'as missing [s]', 0.01, 3600.0)
-        if self.mode not in MODES:
-            raise ParameterError(f'mode {self.mode!r} must be one of {", ".join(MODES)}')
-        params = replace(base, **{n: self.get_parameter(n).value for n in PLANT_RUNTIME})
-        self.fluid = load_fluid(self.model, params)
-        self.plant = Plant(params, dt_s=dt_s, seed=seed, fluid=self.fluid,
-                           integrator=integrator)
-        Plant(params, dt_s=dt_s, seed=seed, fluid=self.fluid,  # JIT first
-              integrator=integrator).advance(0.0, 1)
-        period_ns = round(1e9 / rate)
-        if period_ns % self.plant.dt_ns:
-            raise ParameterError(f'the tick period {period_ns} ns must be a whole number of '
-                                 f'dt_s = {dt_s:g} s')
-        self.period_ns = period_ns
-        self.command_watchdog = TickWatchdog(command_timeout_s, period_ns, timeout_action)
-        self._fresh = False      # a current command arrived since the last tick
-        self._unanswered_since = None  # realtime: first state published since the last command
-        self._missing = False    # lockstep: the last tick's command was missing
-        self.stopped = False     # the watchdog's stop action ended the run
-        self.schedule = EventSchedule([parse_event(e) for e in events if e.strip()],
-                                      allowed=PLANT_RUNTIME, period_ns=period_ns)
-        self.schedule.validate(params)
-        for ev in self.schedule:
-            if self.fluid is not None:
-                self.fluid.check_params(replace(params, **ev.as_dict()))
-        self.steps_per_tick = period_ns // self.plant.dt_ns
-        if procedure not in VALVE_TEST_PROCEDURES:
-            raise ParameterError(f'valve_test_procedure {procedure!r} must be one of '
-                                 f'{", ".join(VALVE_TEST_PROCEDURES)}')
-        self.valve_test = (ValveTest.of(procedure, period_ns, dt_s, flows) if valve_test
-                           else None)
-        # the test bench's transducers of the conditions: one reading per published tick
-        self.sensors = ConditionSensors(seed, load_bench())
-        self.conditions = self.sensors.read(params)[0]
-        self.test_tick = 0
-        self.test_sample = None
-        if self.valve_test is not None:
-            self.valve_test.sample(1, params)  # JIT first
-        self.preflight = (PreflightCheck(period_ns, params.current_limit_a) if preflight
-                          else None)
-        self.preflight_tick = 0
-        self.preflight_last = -1   # self.ticks of the last pre-flight tick
-        self.events = EventChannel(self, period_ns)
-        self.add_on_set_parameters_callback(validator(self._on_set))
-        self.state_pub = advertise(self, ActuatorState, TOPIC_STATE)
-        self._command_node = None
-        if self.mode == 'realtime':
-            # read by the tick loop itself (take), on a node that no executor spins: the
-            # executor's thread would otherwise take the GIL for every command, 1 kHz of
-            # hand-overs with the loop's thread
-            self._command_node = Node(self.get_name() + '_commands', context=self.context,
-                                      start_parameter_services=False)
-            command_sub = subscribe(self._command_node, ServovalveCommand, TOPIC_SERVOVALVE,
-                                    lambda msg: None)
-            self._command_sub = command_sub
-        else:
-            command_sub = subscribe(self, ServovalveCommand, TOPIC_SERVOVALVE,
-                                    self._on_command)
-        self.current_a = 0.0
-        self.done = False
-        self.diverged = False
-        self.ticks = 0
-        self.fatal = None
-        self._msg = None
-        self.timing = TickTiming(self, rate, self.mode == 'realtime')
-        steady = RosClock(clock_type=ClockType.STEADY_TIME)
-        self._steady = steady
-        self._started = False
-        self._last_pub_ns = 0
-        self._first_pub_ns, self._pub_tick_ns = 0, -1   # lockstep: the tick's first publication
-        self.slipped_ticks = 0
-        if self.mode == 'lockstep':
-            self.clock_pub = advertise(self, Clock, TOPIC_CLOCK)
-        self.handshake = StartCoordinator(self, handshake_nodes, self.mode,
-                                          handshake_timeout_s, start_delay_s,
-                                          on_start=self._on_start)
-        for entity, topic in ((self.state_pub, TOPIC_STATE), (command_sub, TOPIC_SERVOVALVE),
-                              (self.timing.pub, '/diagnostics')):
-            self.handshake.watch(entity, topic)
-        if self.mode == 'lockstep':
-            self.handshake.watch(self.clock_pub, TOPIC_CLOCK)
-        self._watchdog = self.create_timer(0.01, self._on_watchdog, clock=steady)
-        self.rt_loop = None
-        if self.mode == 'realtime':  # the tick in a thread of its own
-            self.rt_loop = NodeLoop(self, period_ns, self._on_loop_wake, realtime, loop_options)
-            self.timing.lock = self.rt_loop.lock
-        else:
-            refuse_loop_options(loop_options, 'a lockstep plant')
-        self._lock = self.rt_loop.lock if self.rt_loop else _NoLock()
-        self._warm_up_s = (time.monotonic_ns() - init_ns) * 1e-9
-        if self.rt_loop is not None:
-            self._state_msg()  # the state message's first fill now, not in tick 0
-            self.rt_loop.apply_process_settings()
-        else:
-            apply_realtime_settings(self, realtime)
-        self.get_logger().info(f'model {self.model}, dt {dt_s:g} s ({integrator}), '
-                               f'{self.steps_per_tick} '
-                               f'steps per tick, {self.mode}; waiting for '
-                               f'{", ".join(self.handshake.nodes)}')
+        return SimpleNamespace(base=base, dt_s=dt_s, integrator=integrator, rate=rate, seed=seed,
+                               handshake_nodes=handshake_nodes,
+                               handshake_timeout_s=handshake_timeout_s,
+                               start_delay_s=start_delay_s, events=events, realtime=realtime,
+                               loop_options=loop_options, valve_test=valve_test, flows=flows,
+                               procedure=procedure, preflight=preflight,
+                               command_timeout_s=command_timeout_s, timeout_action=timeout_action)
 
     # parameters --------------------------------------------------------------------------
     def _on_set(self, changes):
@@ -626,16 +644,6 @@ class ServovalvePlant(Node):
         if self._command_node is not None:
             self._command_node.destroy_node()
             self._command_node = None
-
-
-class _NoLock:
-    """Lockstep: every tick runs in the executor's thread; nothing to lock."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
 
 
 def main(args=None) -> int:

@@ -158,6 +158,8 @@ def _save(s, *values):
         s[k] = values[k]
 
 
+# _step and _event take the state as scalars, not as an array or a tuple, so that numba,
+# inlining them into the loop, keeps every state in a register from step to step.
 @njit(cache=True, inline='always')
 def _step(y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, i_cmd, noise_a, p, c, p12_fn,
           flows_fn, data, dt, split):

@@ -20,6 +20,7 @@ the vapour pressure).  :func:`settling_mask` tells which points have settled.
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 from numba import njit, prange
@@ -72,14 +73,24 @@ def spool_grid(n: int = 133, stroke_m: float | None = None, density: float = 4.0
     return 0.5 * (x - x[::-1])  # exact antisymmetry
 
 
+#: The points of a map transient, flat arrays of one length: spool position [m], imposed
+#: flow [m^3/s], supply and return overlap [m], radial clearance [m].
+MapPoints = namedtuple('MapPoints', 'xs q lap_s lap_r clr')
+#: Its chamber pressures [Pa], flat arrays of the same length: the unclipped state the
+#: integration goes on from (``raw_*``) and the clipped pressures it reports (``out_*``).
+MapState = namedtuple('MapState', 'raw_p1 raw_p2 out_p1 out_p2')
+
+
 @njit(cache=True, parallel=True)
-def _transient_kernel(xs, q, lap_s, lap_r, clr, consts, n_steps, dt, out_p1, out_p2, raw_p1,
-                      raw_p2):
-    """Integrate every point from the unclipped pressures ``raw_p1``/``raw_p2`` (zero: the
-    map transient) for ``n_steps`` steps, with the valve's own edge equations
-    (:mod:`.valve`); ``raw_*`` hold the unclipped pressures after, ``out_*`` the clipped
-    ones.  Integrating in chunks from the raw state repeats the same steps bit for bit."""
+def _transient_kernel(points, consts, n_steps, dt, state):
+    """Integrate every point of ``points`` from the unclipped pressures of ``state`` (zero:
+    the map transient) for ``n_steps`` steps of ``dt`` [s], with the valve's own edge
+    equations (:mod:`.valve`); ``state`` then holds the unclipped pressures after, and the
+    clipped ones.  Integrating in chunks from the raw state repeats the same steps bit for
+    bit."""
     ps, pr, pvap, kvol, clk, w, cd, mu, rho, ecc, lc, reynolds = consts
+    xs, q, lap_s, lap_r, clr = points
+    raw_p1, raw_p2, out_p1, out_p2 = state
     n = xs.size
     n_blocks = (n + _BLOCK - 1) // _BLOCK
     for b in prange(n_blocks):
@@ -156,8 +167,8 @@ def transient_map(xs_m, q_m3_s, overlap_m=None, clearance_m=None, params=None,
         raise ValueError('t_end_s must cover at least one step of dt_s')
     p1 = np.empty(xs.size)
     p2 = np.empty(xs.size)
-    _transient_kernel(xs, q, lap, lap, clr, _consts(p), n_steps, float(dt_s), p1, p2,
-                      np.zeros(xs.size), np.zeros(xs.size))
+    _transient_kernel(MapPoints(xs, q, lap, lap, clr), _consts(p), n_steps, float(dt_s),
+                      MapState(np.zeros(xs.size), np.zeros(xs.size), p1, p2))
     if not (np.all(np.isfinite(p1)) and np.all(np.isfinite(p2))):
         bad = int(np.flatnonzero(~(np.isfinite(p1) & np.isfinite(p2)))[0])
         raise FloatingPointError(
@@ -187,12 +198,12 @@ def transient_trace(xs_m, q_m3_s, n_ticks: int, steps_per_tick: int, params=None
             raise ValueError('the start pressures of a map transient must be finite')
     o1, o2 = np.empty(n), np.empty(n)
     p1, p2 = np.empty((n_ticks - first, n)), np.empty((n_ticks - first, n))
+    points, state = MapPoints(xs, q, lap, lap, clr), MapState(raw1, raw2, o1, o2)
     if first:
-        _transient_kernel(xs, q, lap, lap, clr, consts, int(steps_per_tick) * int(first),
-                          float(dt_s), o1, o2, raw1, raw2)
+        _transient_kernel(points, consts, int(steps_per_tick) * int(first), float(dt_s),
+                          state)
     for m in range(n_ticks - first):
-        _transient_kernel(xs, q, lap, lap, clr, consts, int(steps_per_tick), float(dt_s), o1,
-                          o2, raw1, raw2)
+        _transient_kernel(points, consts, int(steps_per_tick), float(dt_s), state)
         p1[m], p2[m] = o1, o2
     if not (np.all(np.isfinite(p1)) and np.all(np.isfinite(p2))):
         raise FloatingPointError('map transient diverged: reduce dt_s')

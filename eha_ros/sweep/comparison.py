@@ -161,10 +161,11 @@ def noise_results(table, models) -> dict:
 
 
 def run_comparison(folder, scenarios, wear_points: dict, models, noise_models=(),
-                   seeds: int = 0, large_dts=(), signals=(), workers=None, in_process=False,
-                   warm=True, progress=True, split_dts=()) -> dict:
+                   seeds: int = 0, large_dts=(), signals=(), split_dts=(), **engine) -> dict:
     """Run both sweeps into ``folder/noise_free`` and ``folder/noise`` (resumed where they
-    hold results) and return ``{'noise_free': ..., 'noise': ..., 'sweeps': summaries}``."""
+    hold results) and return ``{'noise_free': ..., 'noise': ..., 'sweeps': summaries}``.
+    ``engine``: :func:`.engine.run_sweep`'s ``workers`` (one LocalCluster for both sweeps),
+    ``in_process``, ``warm`` (default true) and ``progress``."""
     from . import parse_spec, read_dataset, run_sweep
     folder = Path(folder)
     nf = parse_spec(noise_free_spec(scenarios, wear_points, models, large_dts, signals,
@@ -175,12 +176,14 @@ def run_comparison(folder, scenarios, wear_points: dict, models, noise_models=()
         specs.append(('noise', parse_spec(noise_spec(scenarios, noise_models, seeds),
                                           source='in-loop comparison, noise on')))
     sweeps, out = {}, {'noise_free': {}, 'noise': {}}
+    workers = engine.pop('workers', None)
+    engine.setdefault('warm', True)
+    in_process = engine.get('in_process', False)
     with contextlib.nullcontext() if in_process else cluster(workers) as client:
         for name, spec in specs:
             d = folder / name
-            sweeps[name] = run_sweep(spec, d, in_process=in_process, client=client,
-                                     resume=d.is_dir() and any(d.iterdir()), warm=warm,
-                                     progress=progress)
+            sweeps[name] = run_sweep(spec, d, client=client,
+                                     resume=d.is_dir() and any(d.iterdir()), **engine)
     out['noise_free'] = noise_free_results(read_dataset(folder / 'noise_free'), wear_points,
                                            keep_signals=bool(signals))
     if len(specs) > 1:

@@ -33,25 +33,19 @@ SPEC_FILE = '_spec.yaml'
 TIMING_COLUMNS = ('wall_s', 'wall_point_s', 'wall_cost_s_per_s', 'worker')
 
 
-def schema(spec):
-    """The Arrow schema of a spec's dataset (every batch file has it)."""
+def schema(columns):
+    """The Arrow schema of a dataset (every batch file has it): the sweep's own columns around
+    ``columns``, the ``(name, type)`` a procedure declares
+    (:meth:`eha_ros.procedure.Procedure.columns`; type ``float``, ``int``, ``bool``,
+    ``string`` or ``floats``, a list of floats)."""
     import pyarrow as pa
-    from eha_ros.physics.params import SPEC_BY_NAME
-
-    from .procedures import PROCEDURE_CLASSES
-    types = {'float': pa.float64(), 'int': pa.int64(), 'bool': pa.bool_()}
+    types = {'float': pa.float64(), 'int': pa.int64(), 'bool': pa.bool_(),
+             'string': pa.string(), 'floats': pa.list_(pa.float64())}
     fields = [('case_id', pa.string()), ('point_id', pa.string()), ('status', pa.string()),
               ('error', pa.string()), ('procedure', pa.string()), ('scenario', pa.string()),
               ('model', pa.string()), ('dt_s', pa.float64()), ('seed', pa.int64()),
               ('noise', pa.bool_())]
-    for name in spec.input_names:
-        fields.append((name, pa.string() if SPEC_BY_NAME[name].choices else pa.float64()))
-    proc = PROCEDURE_CLASSES[spec.procedure](spec)
-    fields += [(n, types[t]) for n, t in proc.wanted()]
-    fields += [(f'signal_{s}', pa.list_(pa.float64())) for s in spec.signals]
-    if spec.compare == 'yardstick' and not spec.noise:  # hf's row: its yardstick's envelope
-        fields += [(f'signal_{s}_yardstick_{e}', pa.list_(pa.float64()))
-                   for s in spec.signals for e in ('lo', 'hi')]
+    fields += [(n, types[t]) for n, t in columns]
     fields += [('wall_s', pa.float64()), ('wall_point_s', pa.float64()),
                ('wall_cost_s_per_s', pa.float64()), ('worker', pa.string())]
     return pa.schema(fields)

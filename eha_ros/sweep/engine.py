@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 from .dataset import SPEC_FILE, SweepError, done_case_ids, parts, schema, write_batch
-from .spec import Spec
+from .spec import Spec, parse_spec
 
 __all__ = ['run_sweep', 'run_batch', 'cluster', 'warm_up', 'worker_procedure', 'SweepInterrupted',
            'Batcher', 'Progress']
@@ -63,10 +63,7 @@ def worker_procedure(raw: dict, base: dict):
     key = json.dumps([raw, base], sort_keys=True, default=str)
     proc = _WORKER_SPECS.get(key)
     if proc is None:
-        from .procedures import PROCEDURE_CLASSES
-        from .spec import parse_spec
-        spec = parse_spec(raw, check=False, base=base)
-        proc = PROCEDURE_CLASSES[spec.procedure](spec)
+        proc = parse_spec(raw, check=False, base=base).proc
         _WORKER_SPECS.clear()
         _WORKER_SPECS[key] = proc
     return proc
@@ -225,8 +222,7 @@ def _client(workers: int, scheduler: str | None):
 
 def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None = None,
               in_process: bool = False, resume: bool = False, batch_size: int | None = None,
-              progress: bool | Progress = True, warm: bool = False, log=None,
-              client=None) -> dict:
+              progress: bool | Progress = True, warm: bool = False, client=None) -> dict:
     """Run every case of ``spec`` not yet in ``out``; returns the summary (counts, wall time,
     engine).  Raises :class:`SweepInterrupted` on Ctrl-C, with every finished batch on disk.
 
@@ -238,10 +234,9 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
     ``warm``: compile and load every model on every worker before the cases (timing columns
     without JIT).
     """
-    log = log or (lambda text: print(text, file=sys.stderr, flush=True))
     out = Path(out)
     _prepare_folder(out, spec, resume)
-    sch = schema(spec)
+    sch = schema(spec.proc.columns())
     points = spec.points()
     n_cases = sum(len(p.cases) for p in points)
     done = done_case_ids(out) if resume else set()
@@ -285,7 +280,6 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
         if bar is not None:
             bar.update(rows)
 
-    own, cluster = client is None, None
     try:
         if in_process:
             if warm and batches:
@@ -294,26 +288,23 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
                 b = batches.next(1)
                 finished(b, run_batch(raw, base, b))
         elif batches:
-            if own:
-                client, cluster = _client(workers, scheduler)
-            if _has_bokeh():
-                log(f'eha-sweep: dashboard {client.dashboard_link}')
-            if warm:
-                client.run(warm_up, raw, base)
-            _run_dask(client, raw, base, batches, finished)
+            with (cluster(workers, scheduler) if client is None
+                  else contextlib.nullcontext(client)) as dask:
+                if _has_bokeh():
+                    print(f'eha-sweep: dashboard {dask.dashboard_link}', file=sys.stderr,
+                          flush=True)
+                if warm:
+                    dask.run(warm_up, raw, base)
+                _run_dask(dask, raw, base, batches, finished)
     except BaseException as exc:
         summary['interrupted'] = True
         summary['batches'] = batches.batches
         summary['wall_s'] = round(time.monotonic() - t0, 3)
         if bar is not None and bar.tty:
             print(file=bar.stream)
-        if own:
-            _close(client, cluster)
         if isinstance(exc, KeyboardInterrupt):
             raise SweepInterrupted(summary) from None
         raise
-    if own:
-        _close(client, cluster)
     summary['batches'] = batches.batches
     summary['wall_s'] = round(time.monotonic() - t0, 3)
     summary['files'] = len(parts(out))

@@ -1,8 +1,8 @@
-"""The sweep's errors and how a case is named in them (a leaf: imports nothing of ours)."""
+"""The sweep's errors (a leaf: imports nothing of ours)."""
 
 from __future__ import annotations
 
-__all__ = ['SpecError', 'SweepError', 'label']
+__all__ = ['SpecError', 'SweepError']
 
 
 class SpecError(ValueError):
@@ -11,9 +11,3 @@ class SpecError(ValueError):
 
 class SweepError(RuntimeError):
     """A sweep's output folder, cluster or batch cannot be used (one line)."""
-
-
-def label(inputs: dict) -> str:
-    """A case's swept inputs as ``name=value, ...`` (``nominal`` without any)."""
-    return ', '.join(f'{k}={v:g}' if isinstance(v, float) else f'{k}={v}'
-                     for k, v in inputs.items()) or 'nominal'

@@ -42,16 +42,20 @@ import math
 
 import numpy as np
 
-from eha_ros.physics import ParameterError, get_scenario, params_to_dict
-from eha_ros.physics.params import SPEC_BY_NAME
+from eha_ros.graph import DYNAMIC_MODELS, MODELS
+from eha_ros.physics import ParameterError, default_params, get_scenario, params_to_dict
+from eha_ros.physics.maintenance import VALVE_TEST_PROCEDURES
+from eha_ros.physics.params import SPEC_BY_NAME, params_from_mapping, read_yaml
 from eha_ros.physics.stability import DT_S, EXPLICIT, INTEGRATORS, SPLIT
 
-from .errors import SpecError, label
+from eha_ros.procedure import label
+
+from .errors import SpecError
+from .procedures import PROCEDURES
 
 __all__ = ['SpecError', 'Spec', 'Point', 'Case', 'PROCEDURES', 'MAX_CASES', 'load_spec',
            'parse_spec', 'case_id']
 
-PROCEDURES = ('scenario', 'preflight_check', 'valve_test')
 #: The default guard on a sweep's size (``--max-cases``).
 MAX_CASES = 100_000
 #: Keys a spec may have.
@@ -159,6 +163,9 @@ class Spec:
     #: integrator (models ``<name>@split``); without it: the integrator of every case
     split_dts: tuple = ()
     integrator: str = EXPLICIT
+    #: The procedure (:data:`eha_ros.sweep.procedures.PROCEDURES`), built once by
+    #: :func:`parse_spec`: it checks the spec, declares the columns and runs the points.
+    proc: object = dataclasses.field(default=None, repr=False, compare=False)
     _points: list | None = dataclasses.field(default=None, repr=False)
 
     # --- the cases ------------------------------------------------------------------------
@@ -177,7 +184,6 @@ class Spec:
     def point_params(self, inputs: dict):
         """The plant parameters of a point: the nominal ones with ``inputs`` (and the noise
         switched off without ``noise``)."""
-        from eha_ros.physics.params import params_from_mapping
         changes = dict(inputs)
         if not self.noise:
             changes['noise_std_a'] = 0.0
@@ -208,11 +214,9 @@ class Spec:
         """``(model, dt_s)`` of the cases at a point."""
         out = [(m, self.dt_s) for m in self.models]
         if self.compare == 'yardstick' and self.large_dts:
-            from eha_ros.graph import DYNAMIC_MODELS
             out += [(m, dt) for dt in self.large_dts for m in ('hf',) + self.models
                     if m == 'hf' or m in DYNAMIC_MODELS]
         if self.compare == 'yardstick' and self.split_dts:
-            from eha_ros.graph import DYNAMIC_MODELS
             out += [(f'{m}@{SPLIT}', dt) for dt in self.split_dts
                     for m in ('hf',) + self.models if m == 'hf' or m in DYNAMIC_MODELS]
         return list(dict.fromkeys(out))
@@ -255,7 +259,6 @@ class Spec:
 
 def load_spec(path, max_cases: int = MAX_CASES) -> Spec:
     """Read and check a YAML spec file."""
-    from eha_ros.physics.params import read_yaml
     try:
         raw = read_yaml(path, 'sweep spec')
     except ParameterError as exc:
@@ -288,22 +291,8 @@ def _list_of_floats(name, v, where, positive=False):
     return out
 
 
-def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: bool = True,
-               base: dict | None = None) -> Spec:
-    """Check a spec (a mapping, as from YAML) and build :class:`Spec`; every case's parameters
-    are checked against the plant's ranges and every model's validity (``check``: a worker
-    given a spec the client checked skips it).  ``base``: the nominal parameters
-    (default: ``config/eha_params.yaml``)."""
-    where = source
-    if not isinstance(raw, dict):
-        raise SpecError(f'{where}: a spec is a mapping of {", ".join(KEYS[:6])}, ...')
-    unknown = [k for k in raw if k not in KEYS]
-    if unknown:
-        raise SpecError(f'{where}: unknown key {unknown[0]!r} (one of {", ".join(KEYS)})')
-    procedure = raw.get('procedure')
-    if procedure not in PROCEDURES:
-        raise SpecError(f'{where}: procedure = {procedure!r} must be one of '
-                        f'{", ".join(PROCEDURES)}')
+def _scenarios(raw: dict, procedure: str, where: str) -> tuple:
+    """The spec's scenarios (``(None,)`` for a procedure without one), each a known name."""
     scenario = raw.get('scenario')
     scenarios = (None,)
     if procedure == 'scenario':
@@ -323,6 +312,11 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
                 raise SpecError(f'{where}: {exc}') from None
     elif scenario is not None:
         raise SpecError(f'{where}: scenario is only for procedure scenario, not {procedure}')
+    return scenarios
+
+
+def _models_noise_seeds(raw: dict, procedure: str, where: str) -> tuple:
+    """``(models, noise, seeds)``: known model names, the noise switch, the noise seeds."""
     models = raw.get('models', ['hf'])
     if isinstance(models, str):
         models = [models]
@@ -331,7 +325,6 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
         raise SpecError(f'{where}: models = {models!r} must be a list of model names')
     if len(set(models)) != len(models):
         raise SpecError(f'{where}: models {models} repeat a model')
-    from eha_ros.graph import MODELS
     bad = [m for m in models if m not in MODELS]
     if bad:
         raise SpecError(f'{where}: unknown model {bad[0]!r} (one of {", ".join(MODELS)})')
@@ -349,6 +342,11 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
     if not noise and len(seeds) > 1 and procedure != 'valve_test':
         raise SpecError(f'{where}: {len(seeds)} seeds with noise: false would repeat every '
                         'case (the seed only drives the noise)')
+    return models, noise, seeds
+
+
+def _inputs(raw: dict, where: str) -> tuple:
+    """``(grid, random, cases)``: the grid's axes, the random draws, the explicit points."""
     grid = {}
     params = raw.get('parameters') or {}
     if not isinstance(params, dict):
@@ -394,11 +392,14 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
             else:
                 case[name] = _value(name, v, f'{where}: cases[{k}]')
         cases.append(case)
+    return grid, random, cases
+
+
+def _tie(raw: dict, swept: set, noise: bool, where: str) -> dict:
+    """The tied parameters (each a plant name following a swept one)."""
     tie = raw.get('tie') or {}
     if not isinstance(tie, dict):
         raise SpecError(f'{where}: tie must map a plant name to the swept name it follows')
-    swept = set(grid) | set((random or {}).get('ranges', {})) | {
-        n for c in cases for n in c if n != 'seed'}
     for name, src in tie.items():
         if name not in SPEC_BY_NAME:
             raise SpecError(f'{where}: tie: unknown parameter {name!r}')
@@ -408,6 +409,11 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
             raise SpecError(f'{where}: tie.{name}: {name} is swept itself')
     if not noise and 'noise_std_a' in swept:
         raise SpecError(f'{where}: noise_std_a is swept but noise is false')
+    return tie
+
+
+def _steps(raw: dict, procedure: str, where: str) -> tuple:
+    """``(compare, large_dts, split_dts, integrator, dt_s)``."""
     compare = raw.get('compare')
     if compare not in (None, 'yardstick'):
         raise SpecError(f'{where}: compare = {compare!r} must be yardstick (or absent)')
@@ -426,10 +432,9 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
     if integrator not in INTEGRATORS:
         raise SpecError(f'{where}: integrator {integrator!r} is not one of '
                         f'{", ".join(INTEGRATORS)}')
-    from .procedures import PROCEDURE_CLASSES
-    proc = PROCEDURE_CLASSES[procedure]
-    if integrator != EXPLICIT and (not proc.INTEGRATES or compare):
-        takes = ', '.join(n for n, c in PROCEDURE_CLASSES.items() if c.INTEGRATES)
+    kind = PROCEDURES[procedure]
+    if integrator != EXPLICIT and (not kind.INTEGRATES or compare):
+        takes = ', '.join(n for n, c in PROCEDURES.items() if c.INTEGRATES)
         raise SpecError(f'{where}: integrator: {integrator} is for procedures {takes} (not '
                         'with compare: the yardstick compares by split_dts)')
     dt_s = _float('dt_s', raw.get('dt_s', DT_S), where)
@@ -437,13 +442,19 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
         raise SpecError(f'{where}: dt_s = {dt_s} must be a positive step [s]')
     if compare and dt_s != DT_S:
         raise SpecError(f'{where}: compare: yardstick runs at dt_s = {DT_S:g} s')
+    return compare, large_dts, split_dts, integrator, dt_s
+
+
+def _outputs(raw: dict, procedure: str, compare, where: str) -> tuple:
+    """``(signals, signal_dt_s, metrics)``: what the procedure keeps of each case."""
+    kind = PROCEDURES[procedure]
     signals = raw.get('signals') or []
     if not isinstance(signals, list) or not all(isinstance(s, str) for s in signals):
         raise SpecError(f'{where}: signals must be a list of signal names')
-    bad = [s for s in signals if s not in proc.SIGNALS]
+    bad = [s for s in signals if s not in kind.SIGNALS]
     if bad:
         raise SpecError(f'{where}: unknown signal {bad[0]!r} for procedure {procedure} (one of '
-                        f'{", ".join(proc.SIGNALS)})')
+                        f'{", ".join(kind.SIGNALS)})')
     signal_dt_s = _float('signal_dt_s', raw.get('signal_dt_s', 1e-3), where)
     if not signal_dt_s > 0:
         raise SpecError(f'{where}: signal_dt_s = {signal_dt_s} must be positive')
@@ -451,12 +462,17 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
     if metrics is not None:
         if not isinstance(metrics, list) or not all(isinstance(m, str) for m in metrics):
             raise SpecError(f'{where}: metrics must be a list of metric names')
-        known = proc.metric_names(compare)
+        known = kind.metric_names(compare)
         bad = [m for m in metrics if m not in known]
         if bad:
             raise SpecError(f'{where}: unknown metric {bad[0]!r} for procedure {procedure} '
                             f'(one of {", ".join(known)})')
         metrics = tuple(metrics)
+    return signals, signal_dt_s, metrics
+
+
+def _valve_test(raw: dict, procedure: str, where: str) -> tuple:
+    """``(flows_m3_s, valve_test_procedure, pressure_noise)``: the valve test's settings."""
     flows = raw.get('flows_m3_s')
     if flows is not None:
         if procedure != 'valve_test':
@@ -467,7 +483,6 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
     if procedure != 'valve_test' and ('valve_test_procedure' in raw or 'pressure_noise' in raw):
         raise SpecError(f'{where}: valve_test_procedure and pressure_noise are for procedure '
                         'valve_test')
-    from eha_ros.physics.maintenance import VALVE_TEST_PROCEDURES
     if vtp not in VALVE_TEST_PROCEDURES:
         raise SpecError(f'{where}: valve_test_procedure {vtp!r} must be one of '
                         f'{", ".join(VALVE_TEST_PROCEDURES)}')
@@ -475,18 +490,52 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
             or not 0.0 <= pnoise <= 0.1):
         raise SpecError(f'{where}: pressure_noise = {pnoise!r} must be a relative level in '
                         '[0, 0.1]')
+    return flows, vtp, pnoise
+
+
+def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: bool = True,
+               base: dict | None = None) -> Spec:
+    """Check a spec (a mapping, as from YAML) and build :class:`Spec`; every case's parameters
+    are checked against the plant's ranges and every model's validity (``check``: a worker
+    given a spec the client checked skips it).  ``base``: the nominal parameters
+    (default: ``config/eha_params.yaml``)."""
+    where = source
+    if not isinstance(raw, dict):
+        raise SpecError(f'{where}: a spec is a mapping of {", ".join(KEYS[:6])}, ...')
+    unknown = [k for k in raw if k not in KEYS]
+    if unknown:
+        raise SpecError(f'{where}: unknown key {unknown[0]!r} (one of {", ".join(KEYS)})')
+    procedure = raw.get('procedure')
+    if procedure not in PROCEDURES:
+        raise SpecError(f'{where}: procedure = {procedure!r} must be one of '
+                        f'{", ".join(PROCEDURES)}')
+    scenarios = _scenarios(raw, procedure, where)
+    models, noise, seeds = _models_noise_seeds(raw, procedure, where)
+    grid, random, cases = _inputs(raw, where)
+    swept = set(grid) | set((random or {}).get('ranges', {})) | {
+        n for c in cases for n in c if n != 'seed'}
+    tie = _tie(raw, swept, noise, where)
+    compare, large_dts, split_dts, integrator, dt_s = _steps(raw, procedure, where)
+    signals, signal_dt_s, metrics = _outputs(raw, procedure, compare, where)
+    flows, vtp, pnoise = _valve_test(raw, procedure, where)
+    kind = PROCEDURES[procedure]
     spec = Spec(procedure, scenarios, tuple(models), seeds, noise, grid, random, dict(tie),
                 tuple(cases), compare, large_dts, dt_s, tuple(signals), signal_dt_s, metrics,
                 flows, dict(raw), valve_test_procedure=vtp, pressure_noise=float(pnoise),
                 split_dts=split_dts, integrator=integrator)
     if base is None:
-        from eha_ros.physics import default_params
         base = params_to_dict(default_params())
     spec.base = dict(base)
     spec.source = where
+    spec.proc = kind(spec)
     if check:
         _check_size(spec, where, max_cases)
-        proc.check(spec, where)
+        try:
+            spec.proc.check(where)
+        except SpecError:
+            raise
+        except ValueError as exc:   # the procedure's one line, naming the spec
+            raise SpecError(str(exc)) from None
     return spec
 
 

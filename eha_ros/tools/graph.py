@@ -56,7 +56,7 @@ import yaml
 from eha_ros import graph
 from eha_ros.graph import TIMING_SUFFIX
 
-__all__ = ['main', 'read_params_file', 'node_defaults', 'defaults_yaml']
+__all__ = ['main', 'parser', 'read_params_file', 'node_defaults', 'defaults_yaml']
 
 PROG = 'eha-graph'
 
@@ -448,8 +448,8 @@ def _print_text(summary: dict, out=sys.stdout) -> None:
                      'recorded)'), file=out)
 
 
-def main(argv=None) -> int:
-    """Console script ``eha-graph``; returns the exit status."""
+def parser() -> argparse.ArgumentParser:
+    """``eha-graph``'s command line."""
     ap = argparse.ArgumentParser(prog=PROG, description=__doc__.splitlines()[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog='Exit status: 0 complete, 1 a node failed, 2 bad input, '
@@ -500,7 +500,12 @@ def main(argv=None) -> int:
     ap.add_argument('--list', action='store_true', help='list the scenarios and exit')
     ap.add_argument('--print-params', action='store_true',
                     help="print every node's parameters and defaults (config/graph.yaml)")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def main(argv=None) -> int:
+    """Console script ``eha-graph``; returns the exit status."""
+    args = parser().parse_args(argv)
 
     if args.list:
         from eha_ros.physics import load_scenarios

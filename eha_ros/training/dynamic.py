@@ -354,7 +354,7 @@ def build_dnn(params: PlantParams | None = None, settings: dict | None = None,
     on points drawn over the validity (:func:`sample_points`), where the loop lives
     (:func:`loop_points`) and at the null of a worn valve (:func:`null_points`); returns
     ``(data, meta)``."""
-    from eha_ros.training.networks import fit_network, minmax
+    from eha_ros.training.networks import Split, fit_network, minmax
     p = params if params is not None else default_params()
     st = dict(DNN_SETTINGS, **(settings or {}))
     rng = np.random.default_rng(st['seed'])
@@ -373,9 +373,9 @@ def build_dnn(params: PlantParams | None = None, settings: dict | None = None,
     norm = minmax(x_tr)
     output = fit_output(y_tr)
     alg = st['algorithm']
-    model, hist, wall = fit_network(
+    model, hist, wall = fit_network(Split(
         (x_tr - norm[0]) / norm[1], (y_tr - output[0]) / output[1],
-        (x_va - norm[0]) / norm[1], (y_va - output[0]) / output[1],
+        (x_va - norm[0]) / norm[1], (y_va - output[0]) / output[1]),
         hidden=st['hidden'], algorithm=alg, seed=st['seed'], settings=st[alg],
         threads=threads, activation=st['activation'], skip=True)
     sizes = np.array(model.sizes, dtype=float)

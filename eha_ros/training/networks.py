@@ -27,16 +27,74 @@ Splits
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
 import numpy as np
 
 __all__ = ['ACTIVATIONS', 'make_torch_mlp', 'torch_from_data', 'train_lm', 'train_adam_lbfgs',
-           'fit_network', 'minmax', 'map_split', 'ALGORITHMS']
+           'fit_network', 'minmax', 'map_split', 'ALGORITHMS', 'Split', 'LMSettings',
+           'AdamLBFGSSettings']
 
-#: Training algorithms :func:`fit_network` knows.
-ALGORITHMS = ('lm', 'adam_lbfgs')
+
+@dataclasses.dataclass(frozen=True)
+class Split:
+    """The points a network trains on: inputs ``x`` ``(N, d_in)`` and outputs ``y`` ``(N,
+    d_out)`` of the training split, the validation split's (``None``: none), and optional point
+    weights of each (``None``: all 1); numpy arrays for :func:`fit_network`, float64 tensors
+    inside the trainers."""
+
+    x: object
+    y: object
+    x_val: object = None
+    y_val: object = None
+    w: object = None
+    w_val: object = None
+
+
+@dataclasses.dataclass(frozen=True)
+class LMSettings:
+    """Settings of :func:`train_lm`: at most ``epochs`` epochs; the damping ``mu`` [-] starts
+    at ``mu``, is multiplied by ``mu_dec`` after a step that lowers the loss and by ``mu_inc``
+    until one does, and the training stops above ``mu_max``; ``max_fail`` epochs without a
+    better validation loss stop it; ``subsample`` training points per epoch, redrawn every
+    ``resample_every`` epochs (never if 0); a gradient norm per residual below ``min_grad``
+    and ``time_limit_s`` [s] of wall time stop it too."""
+
+    epochs: int = 1000
+    mu: float = 1e-3
+    mu_dec: float = 0.1
+    mu_inc: float = 10.0
+    mu_max: float = 1e10
+    max_fail: int = 50
+    subsample: int = 20000
+    resample_every: int = 0
+    min_grad: float = 1e-12
+    time_limit_s: float = float('inf')
+
+
+@dataclasses.dataclass(frozen=True)
+class AdamLBFGSSettings:
+    """Settings of :func:`train_adam_lbfgs`: ``adam_steps`` Adam steps on minibatches of
+    ``batch`` points, the learning rate decayed geometrically from ``lr`` to ``lr_final``; then
+    at most ``lbfgs_iters`` full-batch L-BFGS iterations with ``lbfgs_history`` pairs; the
+    validation check every ``val_every`` steps or iterations; ``time_limit_s`` [s] of wall
+    time, split evenly between the two phases."""
+
+    adam_steps: int = 3000
+    batch: int = 4096
+    lr: float = 1e-2
+    lr_final: float = 1e-4
+    lbfgs_iters: int = 1000
+    lbfgs_history: int = 50
+    val_every: int = 50
+    time_limit_s: float = float('inf')
+
+
+#: Training algorithms :func:`fit_network` knows, and their settings.
+SETTINGS = {'lm': LMSettings, 'adam_lbfgs': AdamLBFGSSettings}
+ALGORITHMS = tuple(SETTINGS)
 
 
 def _torch():
@@ -186,30 +244,29 @@ def _mse(model, x, y, w=None):
         return float(torch.mean(r2 if w is None else r2 * w[:, None]))
 
 
-def train_lm(model, x, y, *, x_val=None, y_val=None, w=None, w_val=None,
-             epochs: int = 1000, mu: float = 1e-3,
-             mu_dec: float = 0.1, mu_inc: float = 10.0, mu_max: float = 1e10,
-             max_fail: int = 50, subsample: int = 20000, resample_every: int = 0,
-             min_grad: float = 1e-12, time_limit_s: float = float('inf'), seed: int = 0,
+def train_lm(model, data: Split, settings: LMSettings = LMSettings(), *, seed: int = 0,
              threads: int = 2) -> dict:
-    """Levenberg-Marquardt on the mean squared error (MATLAB's ``trainlm``).
+    """Levenberg-Marquardt on the mean squared error (MATLAB's ``trainlm``) of ``data``
+    (tensors).
 
     Each epoch solves ``(J'J + mu I) d = J'e`` on at most ``subsample`` training points (drawn
     from ``seed``; redrawn every ``resample_every`` epochs, never if 0), accepts the step if it
     lowers the loss (``mu *= mu_dec``) and otherwise retries with ``mu *= mu_inc``.  Stops at
     ``epochs``, ``mu > mu_max``, a gradient norm below ``min_grad``, ``max_fail`` epochs
-    without a better validation loss, or ``time_limit_s``.  The parameters of the best
-    validation epoch (of the last epoch without validation data) are kept.  ``w``, ``w_val``:
-    optional weights of the training and validation points (weighted least squares).
+    without a better validation loss, or ``time_limit_s`` (:class:`LMSettings`).  The
+    parameters of the best validation epoch (of the last epoch without validation data) are
+    kept.  The point weights make it weighted least squares.
 
     Returns the history: ``loss``, ``val``, ``mu`` per epoch, ``epochs``, ``stop``, ``time_s``.
     """
     torch = _torch()
     torch.set_num_threads(threads)
     gen = np.random.default_rng(seed)
+    x, y, x_val, y_val, w_val = data.x, data.y, data.x_val, data.y_val, data.w_val
+    st, mu, subsample = settings, settings.mu, settings.subsample
     n = x.shape[0]
 
-    w = torch.ones(n, dtype=x.dtype) if w is None else w
+    w = torch.ones(n, dtype=x.dtype) if data.w is None else data.w
 
     def draw():
         if n <= subsample:
@@ -225,8 +282,8 @@ def train_lm(model, x, y, *, x_val=None, y_val=None, w=None, w_val=None,
     stop = 'epochs'
     eye = torch.eye(model.theta.numel(), dtype=torch.float64)
     theta = model.theta
-    for ep in range(epochs):
-        if resample_every and ep and ep % resample_every == 0:
+    for ep in range(st.epochs):
+        if st.resample_every and ep and ep % st.resample_every == 0:
             xs, ys, ws = draw()
         with torch.no_grad():
             sw = torch.sqrt(ws).repeat_interleave(ys.shape[1])
@@ -235,7 +292,7 @@ def train_lm(model, x, y, *, x_val=None, y_val=None, w=None, w_val=None,
             jac = model.jacobian(xs) * sw[:, None]
             hess = jac.T @ jac
             grad = jac.T @ e
-            if float(torch.linalg.vector_norm(grad)) / e.numel() < min_grad:
+            if float(torch.linalg.vector_norm(grad)) / e.numel() < st.min_grad:
                 stop = 'min_grad'
                 break
             theta0 = theta.detach().clone()
@@ -247,13 +304,13 @@ def train_lm(model, x, y, *, x_val=None, y_val=None, w=None, w_val=None,
                     theta.copy_(theta0 - step)
                     new = _mse(model, xs, ys, ws)
                     if new < loss:
-                        mu = max(mu * mu_dec, 1e-20)
+                        mu = max(mu * st.mu_dec, 1e-20)
                         loss = new
                         break
-                mu *= mu_inc
-                if mu > mu_max:
+                mu *= st.mu_inc
+                if mu > st.mu_max:
                     break
-            if mu > mu_max:
+            if mu > st.mu_max:
                 theta.copy_(theta0)
                 stop = 'mu_max'
                 break
@@ -267,10 +324,10 @@ def train_lm(model, x, y, *, x_val=None, y_val=None, w=None, w_val=None,
                 fails = 0
             else:
                 fails += 1
-                if fails >= max_fail:
+                if fails >= st.max_fail:
                     stop = 'max_fail'
                     break
-        if time.perf_counter() - t0 > time_limit_s:
+        if time.perf_counter() - t0 > st.time_limit_s:
             stop = 'time_limit'
             break
     if x_val is not None and best[0] < math.inf:
@@ -281,17 +338,13 @@ def train_lm(model, x, y, *, x_val=None, y_val=None, w=None, w_val=None,
     return hist
 
 
-def train_adam_lbfgs(model, x, y, *, x_val=None, y_val=None, w=None, w_val=None,
-                     adam_steps: int = 3000,
-                     batch: int = 4096, lr: float = 1e-2, lr_final: float = 1e-4,
-                     lbfgs_iters: int = 1000, lbfgs_history: int = 50, val_every: int = 50,
-                     time_limit_s: float = float('inf'), seed: int = 0,
-                     threads: int = 2) -> dict:
+def train_adam_lbfgs(model, data: Split, settings: AdamLBFGSSettings = AdamLBFGSSettings(),
+                     *, seed: int = 0, threads: int = 2) -> dict:
     """Adam on minibatches (learning rate decayed geometrically from ``lr`` to ``lr_final``)
-    then full-batch L-BFGS (strong Wolfe line search), on the mean squared error.  The
-    parameters of the best validation check (every ``val_every`` steps/iterations) are kept.
-    ``time_limit_s`` is split evenly between the two phases.  ``w``, ``w_val``: optional
-    weights of the training and validation points.
+    then full-batch L-BFGS (strong Wolfe line search), on the (weighted) mean squared error of
+    ``data`` (tensors).  The parameters of the best validation check (every ``val_every``
+    steps/iterations) are kept.  ``time_limit_s`` is split evenly between the two phases
+    (:class:`AdamLBFGSSettings`).
 
     Returns the history: ``loss``, ``val`` per check, ``adam_steps``, ``lbfgs_iters``,
     ``time_s``.
@@ -299,11 +352,13 @@ def train_adam_lbfgs(model, x, y, *, x_val=None, y_val=None, w=None, w_val=None,
     torch = _torch()
     torch.set_num_threads(threads)
     gen = torch.Generator().manual_seed(int(seed))
+    x, y, x_val, y_val, w_val = data.x, data.y, data.x_val, data.y_val, data.w_val
+    st = settings
     t0 = time.perf_counter()
     hist = {'loss': [], 'val': []}
     best = [math.inf, model.theta.detach().clone()]
 
-    w = torch.ones(x.shape[0], dtype=x.dtype) if w is None else w
+    w = torch.ones(x.shape[0], dtype=x.dtype) if data.w is None else data.w
 
     def check():
         v = _mse(model, x_val, y_val, w_val) if x_val is not None else _mse(model, x, y, w)
@@ -312,28 +367,28 @@ def train_adam_lbfgs(model, x, y, *, x_val=None, y_val=None, w=None, w_val=None,
             best[0] = v
             best[1] = model.theta.detach().clone()
 
-    opt = torch.optim.Adam(model.parameters(), lr=lr)
-    gamma = (lr_final / lr) ** (1.0 / max(adam_steps, 1))
+    opt = torch.optim.Adam(model.parameters(), lr=st.lr)
+    gamma = (st.lr_final / st.lr) ** (1.0 / max(st.adam_steps, 1))
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
     n = x.shape[0]
     done_adam = 0
-    for step in range(adam_steps):
-        idx = torch.randint(0, n, (min(batch, n),), generator=gen)
+    for step in range(st.adam_steps):
+        idx = torch.randint(0, n, (min(st.batch, n),), generator=gen)
         opt.zero_grad()
         loss = torch.mean((model(x[idx]) - y[idx]) ** 2 * w[idx, None])
         loss.backward()
         opt.step()
         sched.step()
         done_adam += 1
-        if step % val_every == 0:
+        if step % st.val_every == 0:
             hist['loss'].append(float(loss.detach()))
             check()
-        if time.perf_counter() - t0 > 0.5 * time_limit_s:
+        if time.perf_counter() - t0 > 0.5 * st.time_limit_s:
             break
     check()
     t_adam = time.perf_counter() - t0
-    opt = torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=val_every,
-                            history_size=lbfgs_history, line_search_fn='strong_wolfe',
+    opt = torch.optim.LBFGS(model.parameters(), lr=1.0, max_iter=st.val_every,
+                            history_size=st.lbfgs_history, line_search_fn='strong_wolfe',
                             tolerance_grad=1e-12, tolerance_change=1e-16)
 
     def closure():
@@ -343,7 +398,7 @@ def train_adam_lbfgs(model, x, y, *, x_val=None, y_val=None, w=None, w_val=None,
         return loss
 
     done_lbfgs = 0
-    while done_lbfgs < lbfgs_iters:
+    while done_lbfgs < st.lbfgs_iters:
         loss = opt.step(closure)
         it = opt.state[opt._params[0]]['n_iter']
         hist['loss'].append(float(loss.detach()))
@@ -351,7 +406,7 @@ def train_adam_lbfgs(model, x, y, *, x_val=None, y_val=None, w=None, w_val=None,
         if it <= done_lbfgs:
             break
         done_lbfgs = it
-        if time.perf_counter() - t0 > time_limit_s:
+        if time.perf_counter() - t0 > st.time_limit_s:
             break
     with torch.no_grad():
         model.theta.copy_(best[1])
@@ -368,40 +423,47 @@ def minmax(a) -> np.ndarray:
     return np.stack([0.5 * (hi + lo), np.where(hi > lo, 0.5 * (hi - lo), 1.0)])
 
 
-def fit_network(x_tr, y_tr, x_val=None, y_val=None, *, hidden, algorithm: str, seed: int,
-                settings: dict, threads: int = 2, w_tr=None, w_val=None,
-                activation: str = 'tanh', skip: bool = False):
+def fit_network(data: Split, *, hidden, algorithm: str, seed: int, settings: dict,
+                threads: int = 2, activation: str = 'tanh', skip: bool = False):
     """Build an MLP of hidden widths ``hidden`` and train it with ``algorithm`` (``'lm'``
-    or ``'adam_lbfgs'``, keyword ``settings`` of :func:`train_lm` / :func:`train_adam_lbfgs`)
-    on already normalised numpy arrays ``x`` ``(N, d_in)`` and ``y`` ``(N, d_out)``; ``w_tr``,
-    ``w_val``: optional point weights (rescaled to mean 1 on the training split);
-    ``activation``: the hidden layers' (:data:`ACTIVATIONS`); ``skip``: a linear input-output
-    term besides the network (:func:`make_torch_mlp`).
+    or ``'adam_lbfgs'``; ``settings``: the fields of its :data:`SETTINGS` class) on ``data``,
+    already normalised numpy arrays (the point weights rescaled to mean 1 on the training
+    split); ``activation``: the hidden layers' (:data:`ACTIVATIONS`); ``skip``: a linear
+    input-output term besides the network (:func:`make_torch_mlp`).
 
     Returns ``(model, history, wall_s)``.
     """
     if algorithm not in ALGORITHMS:
         raise ValueError(f'unknown training algorithm {algorithm!r}')
+    known = {f.name for f in dataclasses.fields(SETTINGS[algorithm])}
+    bad = sorted(set(settings) - known)
+    if bad:
+        raise ValueError(f'training settings of {algorithm}: unknown {bad[0]!r} (one of '
+                         f'{", ".join(sorted(known))})')
     torch = _torch()
 
     def to_t(a):
         return None if a is None else torch.as_tensor(np.ascontiguousarray(a),
                                                       dtype=torch.float64)
-    y_tr = np.asarray(y_tr, dtype=float)
-    y_tr = y_tr[:, None] if y_tr.ndim == 1 else y_tr
-    if y_val is not None:
-        y_val = np.asarray(y_val, dtype=float)
-        y_val = y_val[:, None] if y_val.ndim == 1 else y_val
+
+    def column(a):
+        if a is None:
+            return None
+        a = np.asarray(a, dtype=float)
+        return a[:, None] if a.ndim == 1 else a
+    w_tr, w_val = data.w, data.w_val
     if w_tr is not None:
         scale = 1.0 / np.mean(w_tr)
         w_tr = np.asarray(w_tr) * scale
         w_val = np.asarray(w_val) * scale if w_val is not None else None
-    model = make_torch_mlp(d_in=np.shape(x_tr)[1], d_hidden=hidden, d_out=y_tr.shape[1],
+    y_tr = column(data.y)
+    model = make_torch_mlp(d_in=np.shape(data.x)[1], d_hidden=hidden, d_out=y_tr.shape[1],
                            seed=seed, activation=activation, skip=skip)
     train = train_lm if algorithm == 'lm' else train_adam_lbfgs
+    tensors = Split(*(to_t(a) for a in (data.x, y_tr, data.x_val, column(data.y_val), w_tr,
+                                        w_val)))
     t0 = time.perf_counter()
-    hist = train(model, to_t(x_tr), to_t(y_tr), x_val=to_t(x_val), y_val=to_t(y_val),
-                 w=to_t(w_tr), w_val=to_t(w_val), seed=seed, threads=threads, **settings)
+    hist = train(model, tensors, SETTINGS[algorithm](**settings), seed=seed, threads=threads)
     return model, hist, time.perf_counter() - t0
 
 

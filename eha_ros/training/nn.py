@@ -37,7 +37,7 @@ from eha_ros.physics.maps import fluid_hash, transient_map
 from eha_ros.surrogates.nn import (ASINH, INPUT_NAMES, INPUT_UNITS, SPOOL_GRID_DENSITY,
                                    fit_inputs, fit_output, mlp_numpy, pack, transform_inputs)
 from eha_ros.training.database import Database, get_database, heldout_maps, map_errors
-from eha_ros.training.networks import fit_network, map_split
+from eha_ros.training.networks import Split, fit_network, map_split
 
 __all__ = ['network_map_errors', 'db_maps', 'train_fluid_network', 'build_artefacts',
            'NN_SETTINGS', 'NN2_SETTINGS']
@@ -104,18 +104,18 @@ NN2_SETTINGS = {
 }
 
 
-def _fit_model(raw_tr, y_tr, raw_val, y_val, *, sources, transforms, scales, hidden, algorithm,
-               seed, settings, threads, w_tr=None, w_val=None):
-    """Normalise on the training split, build and train one network (:func:`fit_network`);
-    returns ``(data, history, wall_s, model)``."""
-    inputs = fit_inputs(raw_tr, sources, transforms, scales)
-    output = fit_output(y_tr)
-    model, hist, wall = fit_network(
-        transform_inputs(inputs, raw_tr), (y_tr - output[0]) / output[1],
-        transform_inputs(inputs, raw_val) if raw_val is not None else None,
-        (y_val - output[0]) / output[1] if raw_val is not None else None,
-        hidden=hidden, algorithm=algorithm, seed=seed, settings=settings, threads=threads,
-        w_tr=w_tr, w_val=w_val)
+def _fit_model(raw: Split, columns: tuple, **net):
+    """Normalise ``raw`` (the plant's inputs and P12 [Pa]) on its training split, with
+    ``columns`` the inputs' ``(sources, transforms, scales)`` (:func:`fit_inputs`), then build
+    and train one network (:func:`fit_network`, keywords ``net``); returns ``(data, history,
+    wall_s, model)``."""
+    inputs = fit_inputs(raw.x, *columns)
+    output = fit_output(raw.y)
+    val = raw.x_val is not None
+    model, hist, wall = fit_network(Split(
+        transform_inputs(inputs, raw.x), (raw.y - output[0]) / output[1],
+        transform_inputs(inputs, raw.x_val) if val else None,
+        (raw.y_val - output[0]) / output[1] if val else None, raw.w, raw.w_val), **net)
     data = pack(model.sizes, inputs, output, model.theta.detach().numpy())
     return data, hist, wall, model
 
@@ -178,12 +178,12 @@ def train_fluid_network(*, n_inputs: int = 4, settings: dict | None = None,
     sources = list(range(n_inputs))
     results = {}
     for alg in algorithms:
+        weighted = st['map_weighting']
         data, hist, wall, _ = _fit_model(
-            raw_tr, y_tr, raw_val, y_val, sources=sources, transforms=st['transforms'],
-            scales=scales, hidden=st['hidden'], algorithm=alg, seed=st['seed'],
-            settings=st[alg], threads=threads,
-            w_tr=w_tr if st['map_weighting'] else None,
-            w_val=w_val if st['map_weighting'] else None)
+            Split(raw_tr, y_tr, raw_val, y_val, w_tr if weighted else None,
+                  w_val if weighted else None), (sources, st['transforms'], scales),
+            hidden=st['hidden'], algorithm=alg, seed=st['seed'], settings=st[alg],
+            threads=threads)
         errs = {k: _summary(network_map_errors(data, v)) for k, v in eval_sets.items()}
         val_err = _summary(network_map_errors(data, val_maps))
         results[alg] = {'data': data, 'hist': hist, 'wall_s': wall, 'errors': errs,

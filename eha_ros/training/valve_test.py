@@ -29,7 +29,7 @@ from eha_ros.health.valve_test import (OUTPUT_NAMES, OUTPUT_UNITS, DiagnosticMod
 from eha_ros.physics import PlantParams, default_params
 from eha_ros.physics.maps import WEAR_RANGES, fluid_hash
 from eha_ros.training.database import Database, get_database
-from eha_ros.training.networks import fit_network, map_split, minmax
+from eha_ros.training.networks import Split, fit_network, map_split, minmax
 
 __all__ = ['DIAG_SETTINGS', 'DIAG_THESIS_SETTINGS', 'add_noise', 'curves_from_maps',
            'wear_errors', 'train_diagnostic', 'build_artefact']
@@ -117,9 +117,9 @@ def _train_one(x_tr, y_tr, x_va, y_va, *, hidden, algorithm, seed, settings, thr
     """Fit normalisation on the training split, train (:func:`.networks.fit_network`), return
     ``(weights, in_norm, out_norm, history, wall_s)``."""
     in_norm, out_norm = minmax(x_tr), minmax(y_tr)
-    net, hist, wall = fit_network(
+    net, hist, wall = fit_network(Split(
         (x_tr - in_norm[0]) / in_norm[1], (y_tr - out_norm[0]) / out_norm[1],
-        (x_va - in_norm[0]) / in_norm[1], (y_va - out_norm[0]) / out_norm[1],
+        (x_va - in_norm[0]) / in_norm[1], (y_va - out_norm[0]) / out_norm[1]),
         hidden=hidden, algorithm=algorithm, seed=seed, settings=settings, threads=threads)
     weights = [(w.detach().numpy().copy(), b.detach().numpy().copy()) for w, b in net.layers()]
     return weights, in_norm, out_norm, hist, wall
