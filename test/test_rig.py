@@ -111,16 +111,16 @@ def test_a_listener_left_out_of_the_handshake_misses_the_start_and_the_run_says_
     assert 'missed at the start' in r.loss_report()
 
 
-def test_missing_ticks_are_named_by_tick():
+def testmissing_ticks_are_named_by_tick():
     """The lockstep check itself: a tick without a current command makes the run incomplete,
     named by tick."""
-    from eha_ros.harness import _missing_ticks
+    from eha_ros.harness import missing_ticks
     cfg = GraphConfig(mode='lockstep')
     ms = 1_000_000
-    missing = _missing_ticks(cfg, np.arange(5) * ms, np.arange(5) * ms,
+    missing = missing_ticks(cfg, np.arange(5) * ms, np.arange(5) * ms,
                              np.array([0, 1, 3, 4]) * ms)
     assert missing == {'state': [], 'command': [], 'current command': [2]}
-    realtime = _missing_ticks(GraphConfig(mode='realtime'), np.array([3, 4, 6]) * ms,
+    realtime = missing_ticks(GraphConfig(mode='realtime'), np.array([3, 4, 6]) * ms,
                               np.zeros(0), np.zeros(0))
     assert realtime == {'state': [5]}
 

@@ -341,12 +341,12 @@ def collector():
     """The harness's collector node in a context of its own (no graph: its callbacks are fed
     by the test)."""
     import rclpy
-    from eha_ros.harness import _Collector
+    from eha_ros.harness import Collector
     from eha_ros.isolation import ros_environment
     with ros_environment() as env:
         ctx = rclpy.Context()
         rclpy.init(context=ctx, domain_id=int(env['ROS_DOMAIN_ID']))
-        c = _Collector(ctx)
+        c = Collector(ctx)
         try:
             yield c
         finally:
