@@ -118,10 +118,10 @@ def testmissing_ticks_are_named_by_tick():
     cfg = GraphConfig(mode='lockstep')
     ms = 1_000_000
     missing = missing_ticks(cfg, np.arange(5) * ms, np.arange(5) * ms,
-                             np.array([0, 1, 3, 4]) * ms)
+                            np.array([0, 1, 3, 4]) * ms)
     assert missing == {'state': [], 'command': [], 'current command': [2]}
     realtime = missing_ticks(GraphConfig(mode='realtime'), np.array([3, 4, 6]) * ms,
-                              np.zeros(0), np.zeros(0))
+                             np.zeros(0), np.zeros(0))
     assert realtime == {'state': [5]}
 
 
