@@ -14,7 +14,7 @@ from eha_ros.physics.stability import CHAMBER, FLUID, check_dt, stability_limits
 from eha_ros.physics.valve import valve_flows
 from eha_ros.surrogates.base import SurrogateError, relative_error
 from eha_ros.surrogates.registry import load_surrogate
-from eha_ros.surrogates.dynamic import DynamicSurrogate, edge_flows
+from eha_ros.surrogates.edge import DynamicSurrogate, edge_flows
 
 P = default_params()
 
@@ -96,7 +96,7 @@ def test_edge_flows_at_the_large_flow_corners(dyn):
     dnn's drop feature is clamped) and at the cavitation boundary (supply against a chamber at
     the vapour pressure), openings at full stroke and at both ends of the opening range (the
     end of dlut's axis), clearances at both ends of their range."""
-    from eha_ros.surrogates.dynamic import DP_MAX_PA, valid_range
+    from eha_ros.surrogates.edge import DP_MAX_PA, valid_range
     vr = valid_range(P)
     ops = np.array([vr['opening_m'][0], -P.spool_stroke_m, 0.0, P.spool_stroke_m,
                     vr['opening_m'][1]])
@@ -201,7 +201,7 @@ def test_dynamic_lut_follows_hf_in_the_loop():
 def test_dlut_cells_come_from_the_bits_of_its_axes():
     """The kernel's cell of a point (exponent and top mantissa bits of |x| + 2^e) is the
     interval of the artefact's axis holding it, and its weight the position within."""
-    from eha_ros.surrogates.dynamic import _axis_consts, _log_cell
+    from eha_ros.surrogates.dlut import _axis_consts, _log_cell
     s = load_surrogate('dlut')
     g = s.meta['table']['grid']
     for nodes, e, m in ((s.data[0], g['s_exp2'], g['s_log2_cells']),
@@ -228,7 +228,7 @@ def test_dlut_is_the_hf_edge_law_at_its_nodes():
 
 
 def test_dlut_flow_keeps_rising_beyond_its_pressure_range():
-    from eha_ros.surrogates.dynamic import DP_MAX_PA
+    from eha_ros.surrogates.edge import DP_MAX_PA
     s = load_surrogate('dlut')
     dp = np.linspace(0.9, 3.0, 200) * DP_MAX_PA
     for opening in (-50e-6, 0.0, 20e-6, 300e-6):
@@ -247,7 +247,7 @@ def test_dnn_kernel_equals_its_network():
     evaluated in numpy: within 1e-10 relative (the kernel's logarithm errs by up to 4.6e-13
     absolute in each feature, its exponential by 6.4e-15 relative; through the weights, a few
     tens at most, they move ln G, hence the flow, by well under 1e-10)."""
-    from eha_ros.surrogates.dynamic import dnn_numpy
+    from eha_ros.surrogates.dnn import dnn_numpy
     s = load_surrogate('dnn')
     rng = np.random.default_rng(5)
     n = 3000
@@ -274,7 +274,7 @@ def test_dnn_ir_log_over_every_binade_of_the_positive_doubles():
     """The kernel's logarithm against numpy over its whole input range (every exponent of the
     positive normal doubles, the mantissa boundaries at sqrt(2), and near 1): within the
     series' truncation plus 4 ulp of the result, and within 4 ulp near 1."""
-    from eha_ros.surrogates.dynamic import dnn_ir_log
+    from eha_ros.surrogates.dnn_ir import dnn_ir_log
     rng = np.random.default_rng(21)
     e = np.repeat(np.arange(-1022, 1024), 64)
     x = np.ldexp(rng.uniform(1.0, 2.0, e.size), e)
@@ -293,7 +293,7 @@ def test_dnn_ir_exp_over_its_range():
     """The kernel's exponential against numpy over its documented range ``|y| < 700`` (the
     network's ``ln G`` lies far inside): relative error within the truncation plus 16 ulp (the
     rounding of the reduction ``y - n ln2`` and of the polynomial)."""
-    from eha_ros.surrogates.dynamic import dnn_ir_exp
+    from eha_ros.surrogates.dnn_ir import dnn_ir_exp
     rng = np.random.default_rng(22)
     y = np.concatenate([rng.uniform(-700.0, 700.0, 100000), np.linspace(-700.0, 700.0, 14001),
                         (np.arange(-1009, 1010) + 0.5) * np.log(2.0), [0.0, 1e-300, -1e-17]])
@@ -305,7 +305,7 @@ def test_dnn_numpy_is_the_trained_network():
     """The numpy reference of the kernel test is the torch network the trainer fitted (same
     activation, inputs, skip term, normalisations)."""
     torch = pytest.importorskip('torch')
-    from eha_ros.surrogates.dynamic import dnn_features, dnn_numpy
+    from eha_ros.surrogates.dnn import dnn_features, dnn_numpy
     from eha_ros.training.networks import make_torch_mlp
     s = load_surrogate('dnn')
     data, arch = s.data, s.meta['architecture']

@@ -21,7 +21,7 @@ import pytest
 from eha_ros.evaluation import noise_free
 from eha_ros.physics import default_params, simulate
 from eha_ros.physics.params import replace
-from eha_ros.surrogates.dynamic import hf_chamber_flows
+from eha_ros.surrogates.edge import hf_chamber_flows
 from eha_ros.surrogates.registry import load_surrogate
 
 #: Stream of this module's random wear points.

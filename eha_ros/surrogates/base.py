@@ -64,7 +64,7 @@ class FluidSurrogate:
     #: the kernel's disk-cached compiled forms (:data:`Forms`; ``None``: compiled per process)
     forms: Forms | None = None
 
-    #: what the kernel gives: P12 (the reference's surrogates; :mod:`.dynamic`'s give flows)
+    #: what the kernel gives: P12 (the reference's surrogates; :mod:`.edge`'s dynamic ones: flows)
     kernel_output = P12
 
     @property

@@ -12,7 +12,7 @@ from typing import Callable
 
 from eha_ros.artefacts import load_artefact, models_dir
 from eha_ros.physics import PlantParams, default_params
-from eha_ros.surrogates import dynamic, ga, lut, nn
+from eha_ros.surrogates import dga, dlut, dnn, ga, lut, nn
 from eha_ros.surrogates.base import FluidSurrogate, Forms, SurrogateError
 
 __all__ = ['Kind', 'KINDS', 'load_surrogate', 'shipped_surrogates']
@@ -34,12 +34,10 @@ KINDS = {
     'lut': Kind(lut.lut_kernel, FluidSurrogate, 'eha_ros.training.lut', lut.LUT_FORMS),
     'ga': Kind(ga.ga_kernel, FluidSurrogate, 'eha_ros.training.ga', ga.GA_FORMS),
     'mlp': Kind(nn.mlp_kernel, FluidSurrogate, 'eha_ros.training.nn', nn.MLP_FORMS),
-    'dlut': Kind(dynamic.dlut_kernel, dynamic.DlutSurrogate, 'eha_ros.training.dynamic dlut',
-                 dynamic.DLUT_FORMS),
-    'dnn': Kind(dynamic.dnn_kernel, dynamic.DnnSurrogate, 'eha_ros.training.dynamic dnn',
-                dynamic.DNN_FORMS),
-    'dga': Kind(dynamic.dga_kernel, dynamic.DgaSurrogate, 'eha_ros.training.dynamic dga',
-                dynamic.DGA_FORMS),
+    'dlut': Kind(dlut.dlut_kernel, dlut.DlutSurrogate, 'eha_ros.training.dynamic dlut',
+                 dlut.DLUT_FORMS),
+    'dnn': Kind(dnn.dnn_kernel, dnn.DnnSurrogate, 'eha_ros.training.dynamic dnn', dnn.DNN_FORMS),
+    'dga': Kind(dga.dga_kernel, dga.DgaSurrogate, 'eha_ros.training.dynamic dga', dga.DGA_FORMS),
 }
 
 

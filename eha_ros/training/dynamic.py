@@ -1,8 +1,8 @@
-"""Build the dynamic surrogates of :mod:`.dynamic` (``dlut``, ``dnn``, ``dga``) from the hf
+"""Build the dynamic surrogates of :mod:`.edge` (``dlut``, ``dnn``, ``dga``) from the hf
 model's edge equations, and measure them.
 
 Every member learns the edge law ``G(s, |dp|, c)`` (secant conductance) over the validity of
-:func:`.dynamic.valid_range`.  Training points come from :func:`.dynamic.edge_flows`, i.e.
+:func:`.edge.valid_range`.  Training points come from :func:`.edge.edge_flows`, i.e.
 from :mod:`eha_ros.physics.valve` itself, so there is no transient and no map volume.
 
 Error metric
@@ -32,16 +32,18 @@ from eha_ros.physics import PlantParams, default_params
 
 from eha_ros.artefacts import models_dir, save_artefact
 from eha_ros.surrogates.registry import load_surrogate
-from eha_ros.surrogates.dynamic import (DNN_WIDTH, DP_MAX_PA, EDGE_PARAMETERS, GA_GENES,
-                                        dnn_features, edge_conductance, edge_flows, edge_hash,
-                                        log_axis, valid_range)
+from eha_ros.surrogates.dga import GA_GENES
+from eha_ros.surrogates.dlut import log_axis
+from eha_ros.surrogates.dnn import DNN_WIDTH, dnn_features
+from eha_ros.surrogates.edge import (DP_MAX_PA, EDGE_PARAMETERS, edge_conductance, edge_flows,
+                                     edge_hash, valid_range)
 from eha_ros.surrogates.nn import fit_output
 
 __all__ = ['DLUT_GRID', 'DNN_SETTINGS', 'DGA_SETTINGS', 'sample_points', 'loop_points',
            'null_points',
            'edge_errors', 'chamber_errors', 'build_dlut', 'build_dnn', 'build_dga', 'build_all']
 
-#: Table of ``dlut`` (:func:`.dynamic.log_axis`): openings ``|s|`` on ``2^s_log2_cells``
+#: Table of ``dlut`` (:func:`.dlut.log_axis`): openings ``|s|`` on ``2^s_log2_cells``
 #: equal cells per octave of ``|s| + 2^s_exp2`` m (cells of 0.06 um within 1.9 um of the
 #: edge, then steps of 1.6-3.1 %), both signs, a node at 0 where the edge uncovers; ``|dp|``
 #: likewise with ``2^dp_exp2`` Pa (cells of 1/16 Pa below 1 Pa, then steps of 3.1-6.3 %) up
@@ -52,7 +54,7 @@ __all__ = ['DLUT_GRID', 'DNN_SETTINGS', 'DGA_SETTINGS', 'sample_points', 'loop_p
 #: signals (``step_0p01`` at overlap -0.57 um, clearance 5.53 um).
 DLUT_GRID = {'s_exp2': -19, 's_log2_cells': 5, 'dp_exp2': 0, 'dp_log2_cells': 4, 'n_c': 16}
 
-#: Network of ``dnn``: widths fixed by its kernel (:data:`.dynamic.DNN_WIDTH`), the quintic
+#: Network of ``dnn``: widths fixed by its kernel (:data:`.dnn_ir.DNN_WIDTH`), the quintic
 #: activation the kernel evaluates, a share ``loop_fraction`` of the points where the closed
 #: loop lives (:func:`loop_points`) and a share ``null_fraction`` at the null of a worn valve
 #: (:func:`null_points`), the rest over the whole validity (:func:`sample_points`).
@@ -154,7 +156,7 @@ def chamber_errors(surrogate, params: PlantParams | None = None, wear=None, n_xs
     from eha_ros.physics.maps import spool_grid
     from eha_ros.physics.params import replace
 
-    from eha_ros.surrogates.dynamic import hf_chamber_flows
+    from eha_ros.surrogates.edge import hf_chamber_flows
     p = params if params is not None else default_params()
     wear = wear if wear is not None else [(p.overlap_supply_m, p.radial_clearance_m),
                                           (-1.3e-6, 1.7e-6), (4.1e-6, 4.6e-6)]
@@ -217,7 +219,7 @@ def build_dlut(params: PlantParams | None = None, grid: dict | None = None):
                   'axes': 'data_0 openings |s| [m] (rows of data_3: s = data_0, then '
                           's = -data_0), data_1 pressure drops |dp| [Pa], both on '
                           '2^log2_cells equal cells per octave of |x| + 2^exp2 '
-                          '(eha_ros.surrogates.dynamic.log_axis), data_2 ln(clearance / m), '
+                          '(eha_ros.surrogates.dlut.log_axis), data_2 ln(clearance / m), '
                           'data_3 ln(G / (m^3/(s Pa)))',
                   'interpolation': 'clearance: cubic Lagrange in ln G over ln c, once per '
                                    'wear; per step: bilinear in (|s|, |dp|) of q = G |dp| '
@@ -273,7 +275,7 @@ def _ga_log_errors(coeffs, s, dp, c, ln_g_true):
 
 
 def build_dga(params: PlantParams | None = None, settings: dict | None = None):
-    """Fit the closed form of :func:`.dynamic.ga_edge_flow` by the genetic algorithm on the
+    """Fit the closed form of :func:`.dga.ga_edge_flow` by the genetic algorithm on the
     RMS of ``ln G_fit - ln G`` (the relative flow error, uniform over the decades of flow
     from a covered edge to full stroke: the reference's absolute P12 error let the large
     values dominate), then refit by ``scipy.optimize.least_squares`` from the GA's best for
@@ -348,7 +350,7 @@ def build_dga(params: PlantParams | None = None, settings: dict | None = None):
 
 def build_dnn(params: PlantParams | None = None, settings: dict | None = None,
               threads: int = 2, verbose: bool = False):
-    """Train the edge network ``features -> ln G`` (:func:`.dynamic.dnn_features`: the open
+    """Train the edge network ``features -> ln G`` (:func:`.dnn.dnn_features`: the open
     and covered opening in units of the clearance, the pressure drop, the clearance, all
     logarithmic; quintic activation and a linear skip term, :func:`.networks.fit_network`)
     on points drawn over the validity (:func:`sample_points`), where the loop lives

@@ -6,9 +6,9 @@ Model
     :func:`make_torch_mlp`: an MLP (float64, tanh hidden layers unless told otherwise, linear
     output) whose weights live in one flat parameter ``theta`` laid out as the numba kernel
     (:func:`eha_ros.surrogates.nn.mlp_kernel`) and the numpy forward pass
-    (:func:`eha_ros.surrogates.nn.mlp_forward`) read them.  ``dnn`` (:mod:`.dynamic`) uses the
+    (:func:`eha_ros.surrogates.nn.mlp_forward`) read them.  ``dnn`` (:mod:`.dnn`) uses the
     ``quintic`` activation (:data:`ACTIVATIONS`) and a linear skip term, which its own kernel
-    and :func:`eha_ros.surrogates.dynamic.dnn_numpy` read.
+    and :func:`eha_ros.surrogates.dnn.dnn_numpy` read.
 
 Algorithms
     :func:`train_lm`, Levenberg-Marquardt as MATLAB's ``trainlm`` (damping ``mu`` multiplied by
@@ -104,7 +104,7 @@ def _torch():
 
 #: Hidden-layer activations :func:`make_torch_mlp` knows: ``tanh``, and ``quintic``, the
 #: odd polynomial ``x (15 - 10 x^2 + 3 x^4) / 8`` on [-1, 1] held at +-1 outside (twice
-#: continuously differentiable, no transcendental: what :mod:`.dynamic`'s ``dnn`` kernel
+#: continuously differentiable, no transcendental: what :mod:`.dnn`'s ``dnn`` kernel
 #: evaluates).
 ACTIVATIONS = ('tanh', 'quintic')
 
