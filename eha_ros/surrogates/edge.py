@@ -77,6 +77,7 @@ def edge_hash(p: PlantParams) -> str:
     return params_hash(p, EDGE_PARAMETERS)
 
 
+# the fluid constants travel as the scalars edge_constants takes (physics.valve), not packed
 @njit(cache=True)
 def _edge_flows(s, dp, c, w, cd, mu, rho, ecc, lc, reynolds, out):
     for i in range(s.size):
