@@ -412,8 +412,9 @@ def _tie(raw: dict, swept: set, noise: bool, where: str) -> dict:
     return tie
 
 
-def _steps(raw: dict, procedure: str, where: str) -> tuple:
-    """``(compare, large_dts, split_dts, integrator, dt_s)``."""
+def _steps(raw: dict, procedure: str, kind, where: str) -> tuple:
+    """``(compare, large_dts, split_dts, integrator, dt_s)`` (``kind``: the procedure's
+    class)."""
     compare = raw.get('compare')
     if compare not in (None, 'yardstick'):
         raise SpecError(f'{where}: compare = {compare!r} must be yardstick (or absent)')
@@ -432,7 +433,6 @@ def _steps(raw: dict, procedure: str, where: str) -> tuple:
     if integrator not in INTEGRATORS:
         raise SpecError(f'{where}: integrator {integrator!r} is not one of '
                         f'{", ".join(INTEGRATORS)}')
-    kind = PROCEDURES[procedure]
     if integrator != EXPLICIT and (not kind.INTEGRATES or compare):
         takes = ', '.join(n for n, c in PROCEDURES.items() if c.INTEGRATES)
         raise SpecError(f'{where}: integrator: {integrator} is for procedures {takes} (not '
@@ -445,9 +445,9 @@ def _steps(raw: dict, procedure: str, where: str) -> tuple:
     return compare, large_dts, split_dts, integrator, dt_s
 
 
-def _outputs(raw: dict, procedure: str, compare, where: str) -> tuple:
-    """``(signals, signal_dt_s, metrics)``: what the procedure keeps of each case."""
-    kind = PROCEDURES[procedure]
+def _outputs(raw: dict, procedure: str, kind, compare, where: str) -> tuple:
+    """``(signals, signal_dt_s, metrics)``: what the procedure (``kind``) keeps of each
+    case."""
     signals = raw.get('signals') or []
     if not isinstance(signals, list) or not all(isinstance(s, str) for s in signals):
         raise SpecError(f'{where}: signals must be a list of signal names')
@@ -515,10 +515,10 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
     swept = set(grid) | set((random or {}).get('ranges', {})) | {
         n for c in cases for n in c if n != 'seed'}
     tie = _tie(raw, swept, noise, where)
-    compare, large_dts, split_dts, integrator, dt_s = _steps(raw, procedure, where)
-    signals, signal_dt_s, metrics = _outputs(raw, procedure, compare, where)
-    flows, vtp, pnoise = _valve_test(raw, procedure, where)
     kind = PROCEDURES[procedure]
+    compare, large_dts, split_dts, integrator, dt_s = _steps(raw, procedure, kind, where)
+    signals, signal_dt_s, metrics = _outputs(raw, procedure, kind, compare, where)
+    flows, vtp, pnoise = _valve_test(raw, procedure, where)
     spec = Spec(procedure, scenarios, tuple(models), seeds, noise, grid, random, dict(tie),
                 tuple(cases), compare, large_dts, dt_s, tuple(signals), signal_dt_s, metrics,
                 flows, dict(raw), valve_test_procedure=vtp, pressure_noise=float(pnoise),

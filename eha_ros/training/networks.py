@@ -246,16 +246,11 @@ def _mse(model, x, y, w=None):
 
 def train_lm(model, data: Split, settings: LMSettings = LMSettings(), *, seed: int = 0,
              threads: int = 2) -> dict:
-    """Levenberg-Marquardt on the mean squared error (MATLAB's ``trainlm``) of ``data``
-    (tensors).
-
-    Each epoch solves ``(J'J + mu I) d = J'e`` on at most ``subsample`` training points (drawn
-    from ``seed``; redrawn every ``resample_every`` epochs, never if 0), accepts the step if it
-    lowers the loss (``mu *= mu_dec``) and otherwise retries with ``mu *= mu_inc``.  Stops at
-    ``epochs``, ``mu > mu_max``, a gradient norm below ``min_grad``, ``max_fail`` epochs
-    without a better validation loss, or ``time_limit_s`` (:class:`LMSettings`).  The
-    parameters of the best validation epoch (of the last epoch without validation data) are
-    kept.  The point weights make it weighted least squares.
+    """Levenberg-Marquardt on the (weighted) mean squared error of ``data`` (tensors), as
+    MATLAB's ``trainlm``: each epoch solves ``(J'J + mu I) d = J'e`` on a subsample of the
+    training points drawn from ``seed``, with the damping and stops of :class:`LMSettings`.
+    The parameters of the best validation epoch (of the last epoch without validation data)
+    are kept.
 
     Returns the history: ``loss``, ``val``, ``mu`` per epoch, ``epochs``, ``stop``, ``time_s``.
     """
