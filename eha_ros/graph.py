@@ -46,7 +46,8 @@ __all__ = ['undeclared_message',
            'STATUS_OK', 'STATUS_END_STOP', 'STATUS_CAVITATION', 'STATUS_DIVERGED',
            'STATUS_VALVE_TEST', 'STATUS_PREFLIGHT', 'STATUS_STOPPED', 'STATUS_NAMES', 'LEVEL_OK',
            'LEVEL_WARN', 'LEVEL_ERROR', 'LEVEL_CANNOT_ASSESS', 'LEVEL_NAMES',
-           'REFERENCE_SCENARIOS', 'NODES', 'TIMING_SUFFIX']
+           'REFERENCE_SCENARIOS', 'NODES', 'TIMING_SUFFIX',
+           'RUN_ENDED']
 
 #: Default namespace of the actuator's own topics (``/diagnostics`` and ``/clock`` are global).
 NAMESPACE = '/eha'
@@ -125,6 +126,8 @@ STATUS_NAMES = ('OK', 'END_STOP', 'CAVITATION', 'DIVERGED', 'VALVE_TEST', 'PREFL
 #: Name of a node's timing status on ``/diagnostics``: ``'<node>: timing'`` (the health
 #: monitor's statuses have other names).
 TIMING_SUFFIX = ': timing'
+#: The key of a node's last timing report, sent when its run ends (``'True'``).
+RUN_ENDED = 'Run ended'
 
 #: Health levels (``HealthStatus.level``, the message's ``LEVEL_*`` constants).
 LEVEL_OK = 0

@@ -348,6 +348,56 @@ def test_run_graph_restores_everything_when_a_node_fails(ros_env, monkeypatch, t
     assert dict(os.environ) == before
 
 
+def test_tick_timing_final_report_covers_the_run_and_ends_the_reports(ros_env):
+    """A node whose run ended sends one last report at once, flagged ``Run ended`` and counting
+    every tick; the window's timer then sends nothing more (no empty windows graded ERROR
+    after the end), until the next :meth:`start`."""
+    import time
+
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    from eha_ros.graph import RUN_ENDED
+    from eha_ros.nodes.common import subscribe, TickTiming
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+    try:
+        node = Node('final_test', context=ctx)
+        got = []
+        subscribe(node, DiagnosticArray, '/diagnostics', lambda m: got.extend(m.status))
+        executor = SingleThreadedExecutor(context=ctx)
+        executor.add_node(node)
+        timing = TickTiming(node, 1000.0, realtime=True, window_s=0.05)
+        end = time.monotonic() + 10.0
+        while timing.pub.get_subscription_count() < 1 and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.01)  # matched before anything is sent
+        timing.start(time.monotonic_ns())
+        for _ in range(7):
+            timing.on_schedule()
+        timing.publish_final()
+        timing.publish_final()  # once only
+        end = time.monotonic() + 5.0
+        while not got and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.01)
+        end = time.monotonic() + 0.3  # six windows of the timer
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.01)
+        assert len(got) == 1, [s.message for s in got]
+        values = {kv.key: kv.value for kv in got[0].values}
+        assert values[RUN_ENDED] == 'True' and values['Events since startup'] == '7'
+        timing.start(time.monotonic_ns())  # a new run reports again
+        end = time.monotonic() + 5.0
+        while len(got) < 2 and time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.01)
+        assert len(got) >= 2 and RUN_ENDED not in {kv.key for kv in got[1].values}
+        executor.shutdown()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
 def test_tick_timing_counts_late_slipped_and_overrun_ticks(ros_env):
     """The timing report of a 1 kHz schedule fed with chosen times: a timer call 0.5 period
     late is on time, one 2.7 periods late slipped 2 ticks, a caught-up tick run 1.2 periods

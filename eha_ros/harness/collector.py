@@ -14,15 +14,16 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 
-from eha_ros.graph import (QOS_DEPTH, TOPIC_COMMAND, TOPIC_DIAGNOSTICS, TOPIC_EVENTS,
-                           TOPIC_HEALTH, TOPIC_SERVOVALVE, TOPIC_STATE, graph_qos, topic_qos)
+from eha_ros.graph import (QOS_DEPTH, RUN_ENDED, TIMING_SUFFIX, TOPIC_COMMAND,
+                           TOPIC_DIAGNOSTICS, TOPIC_EVENTS, TOPIC_HEALTH, TOPIC_SERVOVALVE,
+                           TOPIC_STATE, graph_qos, topic_qos)
 from eha_ros.msg import (ActuatorCommand, ActuatorState, GraphEvent, HealthStatus,
                          ServovalveCommand)
 from eha_ros.nodes.common import stamp_to_ns, take_waiting
 from eha_ros.nodes.handshake import evaluate, Handshake
 from eha_ros.recording.definitions import SequenceGapCounter
 
-from .config import COLLECTOR
+from .config import COLLECTOR, TICKING_NODES
 from .result import GraphResult, missing_ticks
 
 STATE_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_s',
@@ -183,11 +184,11 @@ class Collector:
         return ((unanswered or last in self.current_cols['stamp_ns'][-3:])
                 and last in self.command_cols['stamp_ns'][-3:])
 
-    @property
-    def last_arrival_s(self) -> float:
-        """``time.monotonic`` of the last state's receipt (0 before any)."""
-        arrivals = self.state_cols['arrival_s']
-        return arrivals[-1] if len(arrivals) else 0.0
+    def timing_ended(self) -> bool:
+        """Every ticking node's final timing report (``RUN_ENDED``) arrived: the timing of the
+        whole run, also of one shorter than the reports' window."""
+        return all(self.diagnostics.get(n + TIMING_SUFFIX, {}).get('values', {}).get(RUN_ENDED)
+                   == 'True' for n in TICKING_NODES)
 
     def result(self, config, t0: float) -> 'GraphResult':
         """What arrived; ``t0``: when the nodes were launched (``time.monotonic``)."""

@@ -124,7 +124,8 @@ class GraphConfig:
         for t_s, node, changes in checked:
             events.setdefault(node, []).append(format_event(Event(t_s, changes)))
         out = {
-            'command_generator': dict(common, scenario=self.scenario, use_sim_time=sim),
+            'command_generator': dict(common, scenario=self.scenario, use_sim_time=sim,
+                                      duration_s=self.resolved_duration()),
             'controller': dict(common, params_file=self.params_file, use_sim_time=sim),
             'servovalve_plant': dict(common, model=self.model, dt_s=float(self.dt_s),
                                      integrator=str(self.integrator),

@@ -317,10 +317,12 @@ class GraphRun:
 
     def _drain(self) -> None:
         """Let the last tick's messages arrive: in lockstep until its command and current
-        command are in; until the plant's events its states announce are in; with the health
-        monitor until it is idle (it estimates on a worker thread) and its messages are in.
-        At most 10 s."""
+        command are in; until the plant's events its states announce are in; after a run to
+        its end until every ticking node's final timing report is in; with the health monitor
+        until it is idle (it estimates on a worker thread) and its messages are in.  At most
+        10 s."""
         collector, config = self.collector, self.config
+        to_end = not self.interrupted and collector.last_stamp_ns >= self.duration_ns
         end = time.monotonic() + 0.2
         cap = time.monotonic() + 10.0
         n_health = -1
@@ -331,7 +333,7 @@ class GraphRun:
                 continue
             if config.mode == 'lockstep' and not collector.final_answers_in(config):
                 continue
-            if collector.events_in_flight(config):
+            if collector.events_in_flight(config) or (to_end and not collector.timing_ended()):
                 continue
             busy = any(getattr(n, '_pending', 0) for n in self.nodes)
             if not config.health or (not busy and len(collector.health) == n_health):

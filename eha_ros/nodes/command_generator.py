@@ -59,6 +59,9 @@ class CommandGenerator(Node):
         declare(self, 'mode', 'realtime', 'timing mode', choices=MODES)
         self.max_catch_up = declare(self, 'max_catch_up', 50, 'realtime: most late samples '
                                     'published at once; a longer stall slips', 1, 100000)
+        self.duration_s = declare(self, 'duration_s', 0.0, "the run's end [s]: the sample of "
+                                  'this time sends the final timing report (0: the '
+                                  "scenario's duration; a custom waveform's is 1e9 s)", 0.0, 1e9)
         realtime = declare_realtime(self)
         loop_options = declare_loop(self)
         self.scenario = self._build(self._values())
@@ -141,6 +144,8 @@ class CommandGenerator(Node):
             raise ParameterError('rate_hz cannot change while running')
         if 'max_catch_up' in changes:
             self.max_catch_up = int(changes['max_catch_up'])
+        if 'duration_s' in changes:
+            self.duration_s = float(changes['duration_s'])
         if set(changes) & (set(_WAVE_PARAMS) | {'scenario', 'waveform'}):
             self.scenario = self._build(self._values(changes))
 
@@ -162,9 +167,11 @@ class CommandGenerator(Node):
 
     def _on_clock(self, msg: Clock):
         began = time.monotonic_ns()
-        self._publish(stamp_to_ns(msg.clock), stamp=msg.clock)
+        t_ns = stamp_to_ns(msg.clock)
+        self._publish(t_ns, stamp=msg.clock)
         self.timing.tick(began)
         self.timing.busy(began)
+        self._end_timing(t_ns)
 
     def _on_loop_wake(self, now: int):
         """The sample loop woke (its thread, the lock held): publish every sample due by
@@ -190,6 +197,13 @@ class CommandGenerator(Node):
             self.rt_loop.record(k, due, computed, time.monotonic_ns())
             self.timing.tick(now, now - due)
         self.timing.busy(began)
+        self._end_timing((self._rt_next - 1) * self.period_ns)
+
+    def _end_timing(self, t_ns: int) -> None:
+        """After the sample of scenario time ``t_ns``: the final timing report once it reaches
+        the run's end (:meth:`TickTiming.publish_final`)."""
+        if t_ns >= round((self.duration_s or self.scenario.duration_s) * 1e9):
+            self.timing.publish_final()
 
     def close(self) -> None:
         """Stop the sample loop (and write its timing trace)."""

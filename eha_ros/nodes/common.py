@@ -7,6 +7,7 @@ import math
 import sys
 import threading
 import time
+from contextlib import nullcontext
 from typing import Callable, Iterable
 
 import numpy as np
@@ -21,8 +22,9 @@ from eha_ros.physics import ParameterError
 from eha_ros.physics.params import SPEC_BY_NAME
 
 from eha_ros.graph import undeclared_message  # noqa: F401 (re-exported)
-from eha_ros.graph import (MODES, TIMING_SUFFIX, TOPIC_CLOCK, TOPIC_COMMAND, TOPIC_DIAGNOSTICS,
-                           TOPIC_HEALTH, TOPIC_SERVOVALVE, TOPIC_STATE, graph_qos)
+from eha_ros.graph import (MODES, RUN_ENDED, TIMING_SUFFIX, TOPIC_CLOCK, TOPIC_COMMAND,
+                           TOPIC_DIAGNOSTICS, TOPIC_HEALTH, TOPIC_SERVOVALVE, TOPIC_STATE,
+                           graph_qos)
 
 __all__ = ['TOPIC_COMMAND', 'TOPIC_SERVOVALVE', 'TOPIC_STATE', 'TOPIC_HEALTH',
            'TOPIC_DIAGNOSTICS', 'TOPIC_CLOCK', 'QOS', 'MODES', 'declare', 'declare_physics',
@@ -145,7 +147,8 @@ JITTER_BINS = 2000
 class TickTiming:
     """A node's own timing, published as a ``DiagnosticStatus`` ``'<node>: timing'`` on
     ``/diagnostics`` once per ``window_s`` of wall time, like diagnostic_updater's
-    ``FrequencyStatus`` (same keys for the rate) with what a 1 kHz loop also needs.
+    ``FrequencyStatus`` (same keys for the rate) with what a 1 kHz loop also needs, and a last
+    time when the node's run ends (:meth:`publish_final`, ``Run ended``).
 
     The node calls :meth:`tick` for every tick it runs (with the tick's lateness where it has
     a wall-clock schedule), :meth:`slip` for ticks it dropped, and :meth:`busy` with the
@@ -202,6 +205,7 @@ class TickTiming:
         self.pub = advertise(node, DiagnosticArray, TOPIC_DIAGNOSTICS)
         self.timer = None
         self.lock = None  # a tick loop's lock (NodeLoop), taken to read and restart the window
+        self.ended = False  # the final report went out (publish_final)
 
     def start(self, start_ns: int, startup: dict | None = None) -> None:
         """Begin at the graph's start ``start_ns`` (``time.monotonic_ns``): statistics and
@@ -218,6 +222,7 @@ class TickTiming:
         self._w_start = self._start_ns = max(start_ns, time.monotonic_ns())
         self._cpu0 = time.process_time_ns()
         self.startup = dict(startup or {})
+        self.ended = False
         if self.timer is None:
             self.timer = self.node.create_timer(self.window_s, self.publish,
                                                 clock=RosClock(clock_type=ClockType.STEADY_TIME))
@@ -342,12 +347,28 @@ class TickTiming:
         return DiagnosticStatus.OK, 'Desired frequency met.'
 
     def publish(self) -> None:
-        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-        if self.lock is None:
+        """The window's report (the timer's callback); none after :meth:`publish_final`."""
+        with self.lock if self.lock is not None else nullcontext():
+            # the tick loop's thread counts into the same window
+            if self.ended:
+                return
             values = self.values()
-        else:
-            with self.lock:  # the tick loop's thread counts into the same window
-                values = self.values()
+        self._send(values)
+
+    def publish_final(self) -> None:
+        """The node's run has ended (its last tick ran): report the last window now, with
+        ``Run ended`` true, and no more reports after it.  Called where the node's tick runs,
+        holding its tick loop's lock if it has one.  A run shorter than ``window_s`` of wall
+        time is covered by this report alone."""
+        if self.ended:
+            return
+        self.ended = True
+        values = self.values()
+        values[RUN_ENDED] = True
+        self._send(values)
+
+    def _send(self, values: dict) -> None:
+        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
         level, message = self._level
         st = DiagnosticStatus(name=self.name, message=message,
                               hardware_id=self.node.get_fully_qualified_name())

@@ -286,6 +286,8 @@ class Controller(Node):
                 self.timing.tick(began)  # paced by the plant's states: no schedule of its own
                 self._on_timer()
                 self.timing.busy(began)
+            if self._plant_done:
+                self.timing.publish_final()  # the plant's last state: the run has ended
             return
         if self.mode == 'lockstep':
             t_ns = stamp_to_ns(msg.header.stamp)
@@ -310,6 +312,8 @@ class Controller(Node):
         self._send(stamp, current)
         self.timing.tick(began)
         self.timing.busy(began)
+        if self._plant_done:
+            self.timing.publish_final()  # the answer to the plant's last state
 
 
 def main(args=None) -> int:

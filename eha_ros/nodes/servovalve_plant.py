@@ -557,6 +557,13 @@ class ServovalvePlant(Node):
             self._catch_up(now)
         finally:
             self.timing.busy(began)
+        self._end_timing()
+
+    def _end_timing(self) -> None:
+        """After the tick that ended the run (the end, a stop or a divergence): the final
+        timing report (:meth:`TickTiming.publish_final`)."""
+        if self.done or self.diverged:
+            self.timing.publish_final()
 
     def _catch_up(self, now: int):
         """Run every tick due by ``now``: tick k falls due at the start plus k periods (plus
@@ -603,6 +610,7 @@ class ServovalvePlant(Node):
             self._publish_tick()
             self.timing.tick(began)
         self.timing.busy(began)
+        self._end_timing()
 
     # lockstep ----------------------------------------------------------------------------
     def _on_watchdog(self):
@@ -630,6 +638,7 @@ class ServovalvePlant(Node):
                 self._publish_tick()
                 self.timing.tick(began)
             self.timing.busy(began)
+            self._end_timing()
             return
         if now - self._last_pub_ns > self.resend_s * 1e9 and not self._missing:
             self.get_logger().warning(f'no command for tick t = {self.plant.time_s:.6g} s: '
