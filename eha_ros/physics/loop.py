@@ -353,8 +353,10 @@ def advance(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, split):
         (y1, xf1, vf1, xs1, vs1, p1t1, p2t1, p11, p21, xj1, vj1, surf1, qj1, i1, f1, q1l1,
          q2l1) = _step(y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, i_cmd, noise[k], p,
                        c, p12_fn, flows_fn, data, dt, split)
-        if substeps > 1 and _event(xf1, vf, vf1, xs1, vs, vs1, xj1, vj, vj1, p11, p21, qj1,
-                                   c, p):
+        # ``split`` first: a constant of each compiled form, so the explicit form holds no
+        # substep code (bench/plant_rtf.py --against: 10 % faster with the 1 kHz controller)
+        if split and substeps > 1 and _event(xf1, vf, vf1, xs1, vs, vs1, xj1, vj, vj1, p11,
+                                             p21, qj1, c, p):
             for m in range(substeps):
                 k = int((n * substeps + m) * subs_per_noise)
                 (y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f, q1l,
