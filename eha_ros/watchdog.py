@@ -131,12 +131,3 @@ class TickWatchdog:
             self.trips += 1
             return Transition('tripped', self.tick, self.age)
         return None
-
-    def describe(self) -> str:
-        """One line: the state of the watchdog."""
-        if self.tripped_at is not None:
-            return (f'no input for {self.age} ticks: {self.action} since tick '
-                    f'{self.tripped_at} (timeout {self.timeout_ticks} ticks)')
-        if self.age:
-            return f'input stale for {self.age} ticks (timeout {self.timeout_ticks})'
-        return 'input fresh'

@@ -192,7 +192,6 @@ class ClientQueue:
         self._lock = threading.Lock()
         self.dropped: Dict[str, int] = {}
         self.sent: Dict[str, int] = {}
-        self.queued = 0
         self.wake: Callable[[], None] = lambda: None
 
     def put_data(self, topic: str, frame: bytes) -> None:
@@ -202,7 +201,6 @@ class ClientQueue:
                 old, _ = self._data.popleft()
                 self.dropped[old] = self.dropped.get(old, 0) + 1
             self._data.append((topic, frame))
-            self.queued += 1
         if was_empty:
             self.wake()
 

@@ -80,11 +80,6 @@ _CONDITION_FIELDS = ('supply_pressure_measured_pa', 'return_pressure_measured_pa
                      'fluid_temperature_measured_k')
 
 
-def worst_level(levels) -> int:
-    """The most severe of ``levels`` (:data:`SEVERITY`)."""
-    return max(levels, key=lambda lv: SEVERITY[int(lv)], default=0)
-
-
 @dataclasses.dataclass
 class Item:
     """Estimate of one monitored parameter."""
