@@ -74,8 +74,7 @@ if __name__ in ('__main__', '__mp_main__'):
     os.environ.setdefault('NUMBA_NUM_THREADS', '1')
 
 __all__ = ['FAULT_SETTINGS', 'VALVE_NUISANCE', 'BLOCK', 'draw_wear', 'inner_service',
-           'draw_drift',
-           'apply_wear', 'wear_changes', 'cases', 'combination_cases', 'case_params',
+           'draw_drift', 'apply_wear', 'wear_changes', 'cases', 'combination_cases', 'case_params',
            'case_conditions', 'data_sets', 'generate', 'generate_sets', 'train_faults',
            'calibrate', 'recalibrate', 'envelope_parameters', 'envelope_targets', 'fit_ood',
            'build_artefact']
@@ -134,15 +133,9 @@ def draw_drift(rng: np.random.Generator, bench=None, params: PlantParams | None 
     b = bench or load_bench()
     p = params or default_params()
     service = inner_service(b) if inner else b.service
-    out = {}
-    for name in b.nuisance:
-        lo, hi = b.nuisance_range(name, p)
-        out[name] = float(rng.uniform(lo, hi))
-    for name, (lo, hi) in VALVE_NUISANCE.items():
-        out[name] = float(rng.uniform(lo, hi))
-    for name in ('supply_pressure_pa', 'return_pressure_pa'):
-        out[name] = float(rng.uniform(*service[name]))
-    out['fluid_temperature_k'] = float(rng.uniform(*service['fluid_temperature_k']))
+    out = {name: float(rng.uniform(*b.nuisance_range(name, p))) for name in b.nuisance}
+    out.update({name: float(rng.uniform(*r)) for name, r in VALVE_NUISANCE.items()})
+    out.update({name: float(rng.uniform(*service[name])) for name in CONDITIONS})
     return out
 
 
@@ -172,25 +165,11 @@ def cases(n: int, stream: int, p_degrade: float = 0.3, drift: bool = True,
     own generator ``default_rng([stream, i])``, sparse for odd ``i``; with ``drift`` the
     nuisances and conditions drawn too (:func:`draw_drift`, ``inner``), nominal
     otherwise; ``fleet``: then every other nuisance of ``config/tolerances.yaml`` uniform
-    over its range (:func:`_fleet`)."""
-    b, p = load_bench(), default_params()
-    out = []
-    for i in range(n):
-        rng = np.random.default_rng([stream, i])
-        wear = draw_wear(rng, sparse=bool(i % 2), p_degrade=p_degrade)
-        if drift:
-            wear.update(draw_drift(rng, b, p, inner))
-        seed = int(rng.integers(0, 2 ** 31 - 1))
-        out.append((_fleet(rng, wear, p) if fleet else wear, seed))
-    return out
-
-
-def _fleet(rng, wear: dict, params: PlantParams) -> dict:
-    """``wear`` on a unit of the fleet: every nuisance of the tolerances that ``wear`` does
-    not set drawn over its range (:func:`eha_ros.physics.tolerances.draw_unit`, after the
-    case's seed, so that the other draws are those of the case without the fleet); the
-    dynamic frictions as a ratio of the case's breakaway ones."""
-    return draw_unit(rng, wear, params)
+    over its range and the dynamic frictions as a ratio of the case's breakaway ones
+    (:func:`eha_ros.physics.tolerances.draw_unit`, after the case's seed, so that the other
+    draws are those of the case without the fleet)."""
+    return _draw_cases(n, stream, lambda rng, i: draw_wear(rng, bool(i % 2), p_degrade),
+                       drift, inner, fleet)
 
 
 def combination_cases(n: int, stream: int, drift: bool = True, fleet: bool = False):
@@ -198,18 +177,26 @@ def combination_cases(n: int, stream: int, drift: bool = True, fleet: bool = Fal
     uniform over their ranges, the others nominal; with ``drift`` the nuisances and
     conditions drawn (:func:`draw_drift`); ``fleet``: as :func:`cases`; case ``i`` from
     ``default_rng([stream, i])``."""
+    def wear(rng, i):
+        w = {f.name: f.nominal for f in FAULTS}
+        for j in rng.choice(len(FAULTS), size=2 + i % 2, replace=False):
+            w[FAULTS[j].name] = float(rng.uniform(FAULTS[j].lo, FAULTS[j].hi))
+        return w
+    return _draw_cases(n, stream, wear, drift, False, fleet)
+
+
+def _draw_cases(n: int, stream: int, draw_faults, drift: bool, inner: bool, fleet: bool):
+    """The cases of :func:`cases` and :func:`combination_cases`, the faults of case ``i``
+    from ``draw_faults(rng, i)``."""
     b, p = load_bench(), default_params()
     out = []
     for i in range(n):
         rng = np.random.default_rng([stream, i])
-        wear = {f.name: f.nominal for f in FAULTS}
-        for j in rng.choice(len(FAULTS), size=2 + i % 2, replace=False):
-            f = FAULTS[j]
-            wear[f.name] = float(rng.uniform(f.lo, f.hi))
+        wear = draw_faults(rng, i)
         if drift:
-            wear.update(draw_drift(rng, b, p))
+            wear.update(draw_drift(rng, b, p, inner))
         seed = int(rng.integers(0, 2 ** 31 - 1))
-        out.append((_fleet(rng, wear, p) if fleet else wear, seed))
+        out.append((draw_unit(rng, wear, p) if fleet else wear, seed))
     return out
 
 
@@ -334,12 +321,8 @@ def _train_member(x, y, hidden, seed, s):
             loss.backward()
             opt.step()
             sched.step()
-    out = []
-    for m in net:
-        if isinstance(m, torch.nn.Linear):
-            out.append((m.weight.detach().double().numpy().T.copy(),
-                        m.bias.detach().double().numpy().copy()))
-    return out
+    return [(m.weight.detach().double().numpy().T.copy(), m.bias.detach().double().numpy().copy())
+            for m in net if isinstance(m, torch.nn.Linear)]
 
 
 def _normalised(y):
@@ -419,12 +402,7 @@ def envelope_targets(case_list, bench=None, fleet: bool = False) -> np.ndarray:
     ranges."""
     b, p = bench or load_bench(), default_params()
     names, ranges = envelope_parameters(b, fleet)
-    rows = []
-    for w, _ in case_list:
-        row = []
-        for n in names:
-            row.append(w.get(n, getattr(p, n)))
-        rows.append(row)
+    rows = [[w.get(n, getattr(p, n)) for n in names] for w, _ in case_list]
     return (np.array(rows) - ranges[:, 0]) / (ranges[:, 1] - ranges[:, 0])
 
 
