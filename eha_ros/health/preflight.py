@@ -110,7 +110,6 @@ FAULTS = (
     Fault('offset_a', 'A', -1e-3, 1e-3, 'torque-motor current offset'),
 )
 FAULT_NAMES = tuple(f.name for f in FAULTS)
-_BY_NAME = {f.name: f for f in FAULTS}
 
 _EDGES = (50, 100, 150, 200, 250)
 _BIN = 10
@@ -207,9 +206,8 @@ class Subspace:
 class NetEnvelope:
     """The envelope test by a network: a multilayer perceptron (``silu``, which extrapolates
     about linearly) estimates the same parameters as the ridge regression from the
-    standardised inputs, normalised to their ranges; score: the largest distance of an
-    estimate outside ``[0, 1]`` in units of its ``scales`` (the 99 % quantile of its
-    absolute error on held-out data), times ``scale``.  Where a parameter shows only
+    standardised inputs, normalised to their ranges; score: as :class:`OodModel`'s envelope
+    (with the network's ``scales``), times ``scale``.  Where a parameter shows only
     through a non-linear feature of the check (the bulk modulus through the frequency of
     the ringing after the steps) the network reads it four to ten times closer than the
     linear estimate."""
@@ -329,10 +327,8 @@ class FaultModel:
         mismatch = '; '.join(reasons)
         if mismatch:
             sd = np.maximum(sd, 1.0 / math.sqrt(12.0))
-        vals, stds = {}, {}
-        for j, f in enumerate(FAULTS):
-            vals[f.name] = float(f.lo + mu[j] * f.span)
-            stds[f.name] = float(sd[j] * f.span)
+        vals = {f.name: float(f.lo + mu[j] * f.span) for j, f in enumerate(FAULTS)}
+        stds = {f.name: float(sd[j] * f.span) for j, f in enumerate(FAULTS)}
         return FaultEstimate(vals, stds, score, limit, mismatch, note)
 
     def data(self) -> tuple:

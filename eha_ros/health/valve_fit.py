@@ -265,12 +265,9 @@ def fit_curves(curves, cond: Conditions, base: PlantParams, bench=None,
     starts = [np.array([c, o, 0.95, np.log10(lc), 2.0, 0.0, lam_mean])
               for lc in _START_LC for c in _START_C for o in _START_O]
     costs = [float(np.sum(resid(s) ** 2)) for s in starts]
-    best = None
-    for i in np.argsort(costs)[:_REFINED]:
-        r = least_squares(resid, starts[i], bounds=(_LO, _HI), x_scale=_SCALE,
-                          diff_step=1e-4, xtol=1e-10, ftol=1e-10)
-        if best is None or r.cost < best.cost:
-            best = r
+    best = min((least_squares(resid, starts[i], bounds=(_LO, _HI), x_scale=_SCALE,
+                              diff_step=1e-4, xtol=1e-10, ftol=1e-10)
+                for i in np.argsort(costs)[:_REFINED]), key=lambda r: r.cost)
     theta = best.x
     dof = max(xs.size + 2 - theta.size, 1)
     chi = float(np.sqrt(2.0 * best.cost / dof))
@@ -358,7 +355,6 @@ class ValveFitEstimator:
         cov = to_item @ f['cov'][np.ix_(pick, pick)] @ to_item
         theta = np.array([theta[0], theta[1], 1.0 - theta[2] / edge_mean, theta[3]])
         f['sensitivity'] = {k: to_item @ v[pick] for k, v in f['sensitivity'].items()}
-        scale = _UNITS
         var = np.abs(np.diag(cov))
         var[2] += ((1.0 - theta[2]) * edge_std / edge_mean) ** 2   # Cd w unit to unit
         cstd = self.condition_std()
@@ -369,8 +365,8 @@ class ValveFitEstimator:
             if name in f['sensitivity']:
                 var += (f['sensitivity'][name] * cstd[j]) ** 2
         factors = cal.factors if cal is not None else np.ones(len(FIT_NAMES))
-        std = np.sqrt(var) * factors * scale
-        value = theta * scale
+        std = np.sqrt(var) * factors * _UNITS
+        value = theta * _UNITS
         mismatch = list(self.bench.outside_service(conditions))
         k_lo, k_hi = self.bench.nuisance_range('valve_degradation', self.params)
         if cal is not None and f['chi'] > cal.chi_limit:
