@@ -287,14 +287,9 @@ def _comparison_report(c) -> list:
              '| --- | ---: |' + ' ---: |' * len(models)]
     for sc, r in c['noise_free'].items():
         y = r['yardstick']
-        cells = []
-        for m in models:
-            e = r['models'].get(m, {})
-            if 'error' in e or not e:
-                cells.append('failed')
-            else:
-                cells.append(f'{_pct(e["jack"])} / {_pct(e["p12"])}'
-                             + (' ok' if e['meets'] else ''))
+        cells = ['failed' if 'error' in e or not e else
+                 f'{_pct(e["jack"])} / {_pct(e["p12"])}' + (' ok' if e['meets'] else '')
+                 for e in (r['models'].get(m, {}) for m in models)]
         lines.append(f'| {sc} | {_pct(y["jack"])} / {_pct(y["p12"])} | ' + ' | '.join(cells)
                      + ' |')
     if c['noise']:
@@ -358,11 +353,8 @@ def _report(s) -> str:
                                            for m in surrogates) + ' |',
               '| --- |' + ' ---: |' * (3 * len(surrogates))]
     for sc, errs in s['relative_error_vs_hf'].items():
-        cells = []
-        for m in surrogates:
-            e = errs.get(m, {})
-            cells += [_pct(e.get('jack_position_m')), _pct(e.get('p12_pa')),
-                      _pct(e.get('spool_position_m'))]
+        cells = [_pct(errs.get(m, {}).get(k)) for m in surrogates
+                 for k in ('jack_position_m', 'p12_pa', 'spool_position_m')]
         lines.append(f'| {sc} | ' + ' | '.join(cells) + ' |')
     lines += ['', 'Health monitor, live in every run (the last `/eha/health` of each recording; '
               '`live = offline`: the replay of its `/eha/state` through `eha-diagnose` gives the '
@@ -393,12 +385,10 @@ def _report(s) -> str:
                   '| --- |' + ' --- |' * len(valves)]
         names = list(next(iter(s['valve_test'].values()))['true'])
         for n in names:
-            cells = []
-            for v in valves:
-                d = s['valve_test'][v]
-                e = d['estimates'].get(n)
-                cells.append(f'{d["true"][n]:.4g} / ' + (
-                    f'{e["value"]:.4g} +- {e["std"]:.2g} [{e["level"]}]' if e else 'n/a'))
+            cells = [f'{d["true"][n]:.4g} / '
+                     + (f'{e["value"]:.4g} +- {e["std"]:.2g} [{e["level"]}]'
+                        if (e := d['estimates'].get(n)) else 'n/a')
+                     for d in s['valve_test'].values()]
             lines.append(f'| {n} | ' + ' | '.join(cells) + ' |')
         lines.append('| verdict | ' + ' | '.join(
             f'[{s["valve_test"][v]["level"]}] {s["valve_test"][v]["message"]}'
@@ -440,20 +430,18 @@ def main(argv=None) -> int:
     ap.add_argument('--processes', action='store_true',
                     help='each node its own process (default: one process, one executor)')
     args = ap.parse_args(argv)
-    if args.out.exists():
-        print(f'eha-campaign: error: {args.out} exists: refusing to overwrite it',
-              file=sys.stderr)
+
+    def fail(message: str) -> int:
+        print(f'eha-campaign: error: {message}', file=sys.stderr)
         return 2
+    if args.out.exists():
+        return fail(f'{args.out} exists: refusing to overwrite it')
     compare = [m for m in args.compare_models.split(',') if m]
     unknown = [m for m in args.models.split(',') + compare if m not in MODELS]
     if unknown:
-        print(f'eha-campaign: error: unknown model {unknown[0]!r} '
-              f'(one of {", ".join(MODELS)})', file=sys.stderr)
-        return 2
+        return fail(f'unknown model {unknown[0]!r} (one of {", ".join(MODELS)})')
     if args.seeds < 0:
-        print(f'eha-campaign: error: --seeds {args.seeds} must not be negative',
-              file=sys.stderr)
-        return 2
+        return fail(f'--seeds {args.seeds} must not be negative')
     try:
         s = run_campaign(args.out, args.scenarios.split(','), args.models.split(','),
                          args.processes, progress=lambda line: print(line, flush=True),
@@ -461,8 +449,7 @@ def main(argv=None) -> int:
                          compare_models=compare, seeds=args.seeds,
                          seed_models=[m for m in args.seed_models.split(',') if m])
     except (ParameterError, GraphError) as exc:
-        print(f'eha-campaign: error: {exc}', file=sys.stderr)
-        return 2
+        return fail(str(exc))
     print(f'\n{args.out / "report.md"}:\n')
     print((args.out / 'report.md').read_text())
     print(f'campaign done in {s["wall_s"]} s')
