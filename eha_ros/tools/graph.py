@@ -190,8 +190,7 @@ def node_defaults(descriptions: bool = False) -> dict:
                 for pname in sorted(set(node._parameters) - RCLPY_OWN):
                     value = node.get_parameter(pname).value
                     if isinstance(value, (list, tuple)) or hasattr(value, 'tolist'):
-                        value = [v for v in (value.tolist() if hasattr(value, 'tolist')
-                                             else value)]
+                        value = list(value.tolist() if hasattr(value, 'tolist') else value)
                     desc = node.describe_parameter(pname).description
                     out[name][pname] = (value, desc) if descriptions else value
             finally:
@@ -261,27 +260,21 @@ def build_config(args):
                                  '--duration, --record or a scenario)')
             else:
                 node_params.setdefault(node, {})[name] = value
-    if options['mode'] not in graph.MODES:
-        raise UsageError(f'mode {options["mode"]!r} must be one of {", ".join(graph.MODES)}')
-    if options['model'] not in graph.MODELS:
-        raise UsageError(f'model {options["model"]!r} must be one of {", ".join(graph.MODELS)}')
-    if options['integrator'] not in INTEGRATORS:
-        raise UsageError(f'integrator {options["integrator"]!r} must be one of '
-                         f'{", ".join(INTEGRATORS)}')
+    for option, allowed in (('mode', graph.MODES), ('model', graph.MODELS),
+                            ('integrator', INTEGRATORS)):
+        if options[option] not in allowed:
+            raise UsageError(f'{option} {options[option]!r} must be one of {", ".join(allowed)}')
     try:
         get_scenario(options['scenario'])
     except (ParameterError, KeyError, ValueError) as exc:
         raise UsageError(str(exc).strip('"')) from None
     if args.duration is not None and not args.duration > 0:
         raise UsageError(f'--duration must be > 0 s, got {args.duration}')
-    if args.record and Path(args.record).exists():
-        raise UsageError(f'{args.record} exists: refusing to overwrite it')
-    if args.record and not Path(args.record).resolve().parent.is_dir():
-        raise UsageError(f'folder of {args.record} does not exist')
-    if args.trace and Path(args.trace).exists():
-        raise UsageError(f'{args.trace} exists: refusing to overwrite it')
-    if args.trace and not Path(args.trace).resolve().parent.is_dir():
-        raise UsageError(f'folder of {args.trace} does not exist')
+    for path in (args.record, args.trace):
+        if path and Path(path).exists():
+            raise UsageError(f'{path} exists: refusing to overwrite it')
+        if path and not Path(path).resolve().parent.is_dir():
+            raise UsageError(f'folder of {path} does not exist')
     if args.trace and args.record and Path(args.trace).resolve() == Path(args.record).resolve():
         raise UsageError('--trace and --record name the same file')
     config = GraphConfig(scenario=options['scenario'], model=options['model'],
@@ -293,12 +286,11 @@ def build_config(args):
                          node_params=node_params, rt=args.rt, trace=args.trace or '',
                          foxglove=args.foxglove or '',
                          handshake_timeout_s=min(float(args.timeout), 600.0))
-    if not args.health:  # a params file's health monitor section has nothing to apply to
-        config.node_params.pop('health_monitor', None)
-    if not args.record:
-        config.node_params.pop('recorder', None)
-    if not args.foxglove:
-        config.node_params.pop('foxglove_bridge', None)
+    # a params file's section of a node that does not run has nothing to apply to
+    for wanted, node in ((args.health, 'health_monitor'), (args.record, 'recorder'),
+                         (args.foxglove, 'foxglove_bridge')):
+        if not wanted:
+            config.node_params.pop(node, None)
     try:
         config.node_parameters()  # refuses unknown nodes, parameters and event targets
         config.with_trace_files(config.node_parameters(), Path('.'))  # refuses a lockstep trace
