@@ -385,13 +385,9 @@ def _inputs(raw: dict, where: str) -> tuple:
     for k, c in enumerate(raw.get('cases') or []):
         if not isinstance(c, dict):
             raise SpecError(f'{where}: cases[{k}] must map plant names (and seed) to values')
-        case = {}
-        for name, v in c.items():
-            if name == 'seed':
-                case['seed'] = _seeds([v], f'{where}: cases[{k}]')[0]
-            else:
-                case[name] = _value(name, v, f'{where}: cases[{k}]')
-        cases.append(case)
+        at = f'{where}: cases[{k}]'
+        cases.append({name: _seeds([v], at)[0] if name == 'seed' else _value(name, v, at)
+                      for name, v in c.items()})
     return grid, random, cases
 
 
