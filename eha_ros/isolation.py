@@ -61,10 +61,6 @@ def allocate_domain_id(lock_dir: Optional[Path] = None) -> DomainIdLease:
     lock_dir : pathlib.Path, optional
         Folder of the lock files; default ``<tempdir>/eha_ros-ros-domain-ids``.
 
-    Returns
-    -------
-    DomainIdLease
-
     Raises
     ------
     RuntimeError

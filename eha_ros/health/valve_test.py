@@ -8,10 +8,9 @@ Network
     min-max normalised over the training split (the wear ranges of DB4).  The shipped default
     (``diag.npz``, :data:`eha_ros.training.valve_test.DIAG_SETTINGS`) has two hidden layers
     of 64 trained by Adam then L-BFGS; the reference's network (one hidden layer of 10,
-    Levenberg-Marquardt,
-    :data:`eha_ros.training.valve_test.DIAG_THESIS_SETTINGS`) is trained alongside and its
-    held-out errors are recorded in the artefact's metadata (``alternatives``) beside the
-    default's (``errors``).
+    Levenberg-Marquardt, :data:`eha_ros.training.valve_test.DIAG_THESIS_SETTINGS`) is trained
+    alongside and its held-out errors are recorded in the artefact's metadata
+    (``alternatives``) beside the default's (``errors``).
 
 Symmetry
     With equal supply and return overlaps the valve is antisymmetric,

@@ -12,9 +12,6 @@ Network
     transform of XS spends the network's resolution on the null region at the expense of the
     rest (the artefacts' meta ``comparison`` records both).
 
-Data and training
-    :mod:`eha_ros.training.nn` (which databases, which maps are held out, the training algorithms).
-
 Inference (numpy and numba only)
     One generic numba kernel, ``mlp`` (:func:`mlp_kernel`), evaluates any artefact of this
     module; the data tuple packs the layout, the input transforms and normalisation, the output
@@ -22,13 +19,9 @@ Inference (numpy and numba only)
     the data, so the 2-input network ignores the wear arguments.  The kernel works on a stack
     buffer and allocates nothing.
 
-Error metric (the reference's): the relative error in Euclidean norm over a map,
-``||P_pred - P_true||_2 / ||P_true||_2`` with the map all spool positions x flows of one wear
-pair.
-
-Data, training and the build of the shipped artefacts are in :mod:`eha_ros.training.nn`
-(``python -m eha_ros.training.nn``, about an hour on two cores), on the shared trainer
-of :mod:`eha_ros.training.networks`.
+Error metric, data (which databases, which maps are held out), training and the build of the
+shipped artefacts: :mod:`eha_ros.training.nn` (``python -m eha_ros.training.nn``, about an
+hour on two cores), on the shared trainer of :mod:`eha_ros.training.networks`.
 """
 
 from __future__ import annotations

@@ -3,10 +3,8 @@ genetic algorithm, refit it by gradient, and write ``ga.npz``.
 
 Build: ``python -m eha_ros.training.ga``.
 
-Admissible coefficients: both denominators stay >= ``MIN_DENOMINATOR`` over the spool
-stroke.  The bounds allow negative ``c4, c5, c7, c8``, hence denominators that cross zero: a
-pole between the map's spool positions would not show in the fit error but would blow up the
-plant.  The genetic algorithm gives such individuals an infinite fitness.
+Admissible coefficients (:mod:`eha_ros.surrogates.ga`): an individual whose denominators
+fall below ``MIN_DENOMINATOR`` over the spool stroke gets an infinite fitness.
 
 Genetic algorithm
 -----------------
@@ -48,11 +46,7 @@ __all__ = ['THESIS_INITIAL', 'THESIS_LB', 'THESIS_UB', 'MIN_DENOMINATOR', 'GASet
 
 #: The reference's initial coefficients and bounds (``c1`` pinned at 2e7 Pa).
 THESIS_INITIAL = np.array([2e7, 2e2, -1.5e7, 800.0, 1e4, -8e5, 5e3, 1e4])
-
-
 THESIS_LB = np.array([2e7, 1e2, -1e9, -1e7, -1e7, -1e7, -1e7, -1e7])
-
-
 THESIS_UB = np.array([2e7, 1e3, 1e9, 1e7, 1e7, 1e7, 1e7, 1e7])
 for _a in (THESIS_INITIAL, THESIS_LB, THESIS_UB):
     _a.setflags(write=False)
@@ -165,10 +159,6 @@ def genetic_fit(xs_m, q_m3_s, p12_pa, xs_max_m: float, settings: GASettings | No
         Population, operators and seed.
     x0, lb, ub : array_like of 8
         Initial coefficients (an individual of the first population) and bounds.
-
-    Returns
-    -------
-    GAResult
     """
     s = settings if settings is not None else GASettings()
     s.check()
