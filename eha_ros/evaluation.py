@@ -204,17 +204,16 @@ def with_noise(p, scenario, surrogates, seeds=5):
     its standard error.  For reference also hf with the discharge coefficient +0.1 % against
     hf, same seeds: how far a perturbation no model could resolve moves hf under the same
     noise."""
-    pn = p
-    hf = [run(pn, scenario, seed=k) for k in range(seeds + 1)]
+    hf = [run(p, scenario, seed=k) for k in range(seeds + 1)]
     spread = [_errors(hf[k + 1], hf[k]) for k in range(seeds)]
-    pc = replace(pn, discharge_coefficient=pn.discharge_coefficient * 1.001)
+    pc = replace(p, discharge_coefficient=p.discharge_coefficient * 1.001)
     same = [_errors(run(pc, scenario, seed=k), hf[k]) for k in range(seeds)]
     out = {'seeds': int(seeds), 'hf_seed_to_seed': mean_sem(spread),
            'hf_cd_plus_0.1%_same_seed': mean_sem(same), 'models': {}}
     limit = {q: 1.5 * out['hf_seed_to_seed'][q] for q in ('jack', 'p12')}
     for name, s in surrogates.items():
         try:
-            errs = [_errors(run(pn, scenario, s, seed=k), hf[k]) for k in range(seeds)]
+            errs = [_errors(run(p, scenario, s, seed=k), hf[k]) for k in range(seeds)]
         except Exception as exc:
             out['models'][name] = {'error': f'{type(exc).__name__}: {exc}'}
             continue

@@ -484,10 +484,7 @@ class LiveServer:
         with self._lock:
             live = list(self.clients.values())
             gone = list(self.closed_clients)
-        out = list(gone)
-        for c in live:
-            out.append(_stats(c, True))
-        return sorted(out, key=lambda s: s['client'])
+        return sorted(gone + [_stats(c, True) for c in live], key=lambda s: s['client'])
 
     def subscribed_clients(self, channel_ids: Iterable[int]) -> int:
         """How many clients are subscribed to every one of ``channel_ids``."""

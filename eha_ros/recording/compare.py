@@ -127,11 +127,8 @@ def resampled_relative_error(t_ref: np.ndarray, x_ref: np.ndarray, t: np.ndarray
 
 def _unique_labels(runs: List[Run]) -> List[Run]:
     counts = Counter(r.label for r in runs)
-    out = []
-    for r in runs:
-        label = r.label if counts[r.label] == 1 else f'{r.label} ({Path(r.path).name})'
-        out.append(r._replace(label=label))
-    return out
+    return [r._replace(label=r.label if counts[r.label] == 1
+                       else f'{r.label} ({Path(r.path).name})') for r in runs]
 
 
 def compare_runs(runs: Sequence[Run], reference: int = 0, align: str = 'stamp') -> dict:
@@ -176,8 +173,8 @@ def format_table(result: dict) -> str:
         'n/a' if r['relative_error'][s] is None else f"{r['relative_error'][s]:.4e}"
         for s in result['signals']] for r in result['runs']]
     widths = [max(len(str(c)) for c in col) for col in zip(header, *rows)]
-    for row in [header] + rows:
-        lines.append('  '.join(str(c).ljust(w) for c, w in zip(row, widths)).rstrip())
+    lines += ['  '.join(str(c).ljust(w) for c, w in zip(row, widths)).rstrip()
+              for row in [header] + rows]
     return '\n'.join(lines)
 
 
