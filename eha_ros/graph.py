@@ -126,7 +126,8 @@ STATUS_NAMES = ('OK', 'END_STOP', 'CAVITATION', 'DIVERGED', 'VALVE_TEST', 'PREFL
 #: Name of a node's timing status on ``/diagnostics``: ``'<node>: timing'`` (the health
 #: monitor's statuses have other names).
 TIMING_SUFFIX = ': timing'
-#: The key of a node's last timing report, sent when its run ends (``'True'``).
+#: The key of a node's last timing report, sent when its run ends (value 1: every timing
+#: value is a number).
 RUN_ENDED = 'Run ended'
 
 #: Health levels (``HealthStatus.level``, the message's ``LEVEL_*`` constants).

@@ -386,7 +386,7 @@ def test_tick_timing_final_report_covers_the_run_and_ends_the_reports(ros_env):
             executor.spin_once(timeout_sec=0.01)
         assert len(got) == 1, [s.message for s in got]
         values = {kv.key: kv.value for kv in got[0].values}
-        assert values[RUN_ENDED] == 'True' and values['Events since startup'] == '7'
+        assert values[RUN_ENDED] == '1' and values['Events since startup'] == '7'
         timing.start(time.monotonic_ns())  # a new run reports again
         end = time.monotonic() + 5.0
         while len(got) < 2 and time.monotonic() < end:

@@ -478,7 +478,7 @@ def test_timing_reports_cover_the_run_from_the_synchronised_start(ros_env):
             assert float(values['Discovery (s)']) >= 0 and float(values['JIT warm-up (s)']) > 0
             # the final report, sent when the node's run ended: a run shorter than the
             # reports' 1 s window is covered too, every tick counted
-            assert values[graph.RUN_ENDED] == 'True', (mode, name, values)
+            assert values[graph.RUN_ENDED] == '1', (mode, name, values)
             # (the lockstep plant publishes tick 0 at the start and counts the ticks it advances)
             lockstep_plant = mode == 'lockstep' and name.startswith('servovalve_plant')
             assert int(values['Events since startup']) == len(r.state['tick']) - lockstep_plant

@@ -188,7 +188,7 @@ class Collector:
         """Every ticking node's final timing report (``RUN_ENDED``) arrived: the timing of the
         whole run, also of one shorter than the reports' window."""
         return all(self.diagnostics.get(n + TIMING_SUFFIX, {}).get('values', {}).get(RUN_ENDED)
-                   == 'True' for n in TICKING_NODES)
+                   == '1' for n in TICKING_NODES)
 
     def result(self, config, t0: float) -> 'GraphResult':
         """What arrived; ``t0``: when the nodes were launched (``time.monotonic``)."""

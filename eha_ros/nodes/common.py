@@ -357,14 +357,14 @@ class TickTiming:
 
     def publish_final(self) -> None:
         """The node's run has ended (its last tick ran): report the last window now, with
-        ``Run ended`` true, and no more reports after it.  Called where the node's tick runs,
+        ``Run ended`` 1, and no more reports after it.  Called where the node's tick runs,
         holding its tick loop's lock if it has one.  A run shorter than ``window_s`` of wall
         time is covered by this report alone."""
         if self.ended:
             return
         self.ended = True
         values = self.values()
-        values[RUN_ENDED] = True
+        values[RUN_ENDED] = 1
         self._send(values)
 
     def _send(self, values: dict) -> None:
