@@ -3,7 +3,7 @@
 import sys
 from pathlib import Path
 
-from hypothesis import given, settings, strategies as st
+from hypothesis import example, given, settings, strategies as st
 import numpy as np
 from numpy.testing import assert_allclose
 import pytest
@@ -187,6 +187,7 @@ def test_steady_state_satisfies_flow_balance():
 
 @settings(max_examples=40, deadline=None)
 @given(seed=st.integers(0, 2 ** 32 - 1), rtol=st.sampled_from([1e-12, 1e-10, 1e-8]))
+@example(seed=33178, rtol=1e-8)  # a saturated point: P2 2.8e-7 off when only the flow stopped
 def test_steady_map_to_a_tolerance_is_the_bisections_solution(seed, rtol):
     """The Illinois solver (``rtol``) on random valves over and beyond the wear ranges, Cd
     law, conditions, flows and positions (cavitating and saturated points included): the

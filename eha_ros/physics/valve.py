@@ -351,7 +351,10 @@ def steady_pressures_rtol(xs_m, q_m3_s, p, p_max_pa, rtol):
     """:func:`steady_pressures` to a relative tolerance ``rtol`` (of the pressures, and of
     the metered flow), by the Illinois method at both levels: the same solution, found in a
     tenth of the flow evaluations, for the estimators that need many maps and no more than
-    ``rtol``."""
+    ``rtol``.  Each chamber pressure is monotonic in the metered flow, so the search stops
+    once the pressures at both ends of the flow bracket agree to ``rtol``, not the flow
+    alone: where an edge drops much more than a chamber's pressure (a saturated point), a
+    flow to ``rtol`` leaves that pressure off by ``2 dp / p`` times as much."""
     lo_p = p.vapour_pressure_pa
     clk = p.leakage_coeff_m3_s_pa
     ps = p.supply_pressure_pa
@@ -377,6 +380,13 @@ def steady_pressures_rtol(xs_m, q_m3_s, p, p_max_pa, rtol):
         r = qm - q_m3_s - clk * (p1 - p2)
         a, fa, b, fb, side, width, slow, found = _illinois_update(a, fa, b, fb, qm, r, side,
                                                                   width, slow)
-        if found or b - a <= 1e-16 + rtol * abs(qm):
+        if r < 0.0:
+            pa1, pa2 = p1, p2
+        elif r > 0.0:
+            pb1, pb2 = p1, p2
+        if found or b - a <= 1e-16 + 1e-13 * abs(qm):  # or at the bisection's own stop
+            break
+        if (b - a <= rtol * abs(qm) and abs(pb1 - pa1) <= rtol * max(1.0, abs(p1))
+                and abs(pb2 - pa2) <= rtol * max(1.0, abs(p2))):
             break
     return p1, p2
