@@ -46,11 +46,8 @@ $(STAMPS)/requirements-bench: requirements-bench.txt requirements.txt | $(BIN)/p
 	$(PIP) install -r requirements-bench.txt
 	@mkdir -p $(STAMPS) && touch $@
 
-# The installed package's numba disk cache goes with it: an entry is checked against its own
-# file only, so a kernel that inlines another module's code would outlive a change there.
+# (a changed package drops its own numba disk cache when imported: eha_ros.jit_cache)
 $(STAMPS)/package: $(STAMPS)/requirements $(PACKAGE_SOURCES)
-	find $(VENV)/lib -path '*/site-packages/eha_ros/*' \( -name '*.nbi' -o -name '*.nbc' \) \
-		-delete
 	$(PIP) install --no-deps --force-reinstall .
 	@mkdir -p $(STAMPS) && touch $@
 

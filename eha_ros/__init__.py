@@ -9,6 +9,8 @@ import importlib.abc
 from pathlib import Path
 import sys
 
+from .jit_cache import drop_stale_cache
+
 __version__ = '0.1.0'
 
 
@@ -30,6 +32,9 @@ class _NoGeneratedMessages(importlib.abc.MetaPathFinder):
                 name=name)
         return None
 
+
+# before any kernel is compiled or loaded: numba's cache entries of a changed package go
+drop_stale_cache(Path(__file__).parent)
 
 if not (Path(__file__).parent / 'msg' / '__init__.py').is_file():
     sys.meta_path.append(_NoGeneratedMessages(Path(__file__).parent))

@@ -1,0 +1,105 @@
+"""The package's numba cache is dropped when any of its sources changed (eha_ros.jit_cache):
+numba itself checks a cached function against its own file only."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+from eha_ros.jit_cache import drop_stale_cache, STAMP_NAME
+
+_HELPER = '''
+from numba import njit
+
+
+@njit(cache=True, inline='always')
+def gain():
+    return {value}
+'''
+_KERNEL = '''
+from numba import njit
+
+from .helper import gain
+
+
+@njit(cache=True)
+def kernel(x):
+    return gain() * x
+'''
+_RUN = '''
+import sys
+from pathlib import Path
+sys.path.insert(0, sys.argv[1])
+if sys.argv[2] == 'guarded':
+    from eha_ros.jit_cache import drop_stale_cache
+    drop_stale_cache(Path(sys.argv[1]) / 'pkg')
+from pkg.kernel import kernel
+print(kernel(1.0))
+'''
+
+
+def _package(root, value):
+    pkg = root / 'pkg'
+    pkg.mkdir(exist_ok=True)
+    (pkg / '__init__.py').write_text('')
+    (pkg / 'helper.py').write_text(_HELPER.format(value=value))
+    (pkg / 'kernel.py').write_text(_KERNEL)
+    return pkg
+
+
+def _run(root, mode):
+    env = dict(os.environ)
+    env.pop('NUMBA_CACHE_DIR', None)
+    out = subprocess.run([sys.executable, '-c', _RUN, str(root), mode], capture_output=True,
+                         text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return float(out.stdout.split()[-1])
+
+
+def test_a_changed_module_reaches_a_cached_kernel_that_inlines_it(tmp_path):
+    """A kernel cached on disk that inlines a helper of another module: after the helper
+    changes, numba alone still loads the old code from the cache; with the package's cache
+    dropped on a changed fingerprint, the new code runs."""
+    for mode in ('plain', 'guarded'):
+        root = tmp_path / mode
+        root.mkdir()
+        pkg = _package(root, 2.0)
+        assert _run(root, mode) == 2.0
+        helper = pkg / 'helper.py'
+        helper.write_text(_HELPER.format(value=3.0))
+        st = helper.stat()
+        os.utime(helper, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # a later edit
+        expected = 2.0 if mode == 'plain' else 3.0  # numba's own check misses the change
+        assert _run(root, mode) == expected, mode
+
+
+def test_cache_files_go_only_when_a_source_changed(tmp_path, monkeypatch):
+    """No fingerprint stored: every cache file goes (its provenance is unknown); the same
+    sources: nothing goes; one file changed: every cache file of every folder goes, under
+    NUMBA_CACHE_DIR too, and nothing else does."""
+    pkg = _package(tmp_path, 1.0)
+    user = tmp_path / 'user_cache'
+    monkeypatch.setenv('NUMBA_CACHE_DIR', str(user))
+    mirrored = user / pkg.resolve().relative_to(pkg.resolve().anchor)
+
+    def plant():
+        files = [pkg / '__pycache__' / 'kernel.kernel-8.py311.nbi',
+                 pkg / '__pycache__' / 'kernel.kernel-8.py311.1.nbc',
+                 mirrored / 'helper.gain-5.py311.nbi']
+        for f in files:
+            f.parent.mkdir(parents=True, exist_ok=True)
+            f.write_bytes(b'x')
+        return files
+
+    keep = pkg / '__pycache__' / 'kernel.cpython-311.pyc'
+    keep.parent.mkdir(parents=True, exist_ok=True)
+    keep.write_bytes(b'pyc')
+    files = plant()
+    assert drop_stale_cache(pkg) == 3 and not any(f.exists() for f in files)
+    assert (pkg / '__pycache__' / STAMP_NAME).is_file()
+    files = plant()
+    assert drop_stale_cache(pkg) == 0 and all(f.exists() for f in files)
+    (pkg / 'helper.py').write_text(textwrap.dedent(_HELPER.format(value=1.5)))
+    assert drop_stale_cache(pkg) == 3 and not any(f.exists() for f in files)
+    assert keep.exists()
+    assert drop_stale_cache(pkg) == 0
