@@ -74,6 +74,38 @@ def test_evaluate_names_the_node_endpoint_and_topic_short_of_its_peers():
     assert evaluate(extra, nodes) is None
 
 
+def test_a_recorder_that_lags_at_the_end_still_gets_the_whole_run(ros_env, tmp_path):
+    """The recorder frozen (SIGSTOP) for 2 s from the 100th state of a lockstep run that ends
+    well within that: the harness waits on the recorder's ``~/status`` until it holds every
+    state and command the collector received before it stops the publishers, so the file has
+    the whole run (stopping them at once lost the undelivered tail with its writers)."""
+    import signal
+    import threading
+
+    from eha_ros.recording.reader import scan
+    record = tmp_path / 'run.mcap'
+    frozen = {}
+    with GraphRun(GraphConfig(mode='lockstep', scenario='step_0p1', duration_s=0.5,
+                              record=str(record)),
+                  env=ros_env, log_dir=ros_env['ROS_LOG_DIR']) as run:
+        def freeze():
+            c = run.collector
+            if not frozen and c is not None and c.n_states >= 100:
+                pid = run.pids['recorder']
+                os.kill(pid, signal.SIGSTOP)
+                frozen['at'] = time.monotonic()
+                threading.Timer(2.0, os.kill, (pid, signal.SIGCONT)).start()
+            return False
+        run.stop = freeze
+        r = run.wait()
+    assert frozen and time.monotonic() - frozen['at'] >= 2.0
+    assert r.complete and r.messages[graph.TOPIC_STATE] == 501, r.loss_report()
+    info = scan(record)
+    assert info.lost_messages() == {t: 0 for t in info.message_counts}
+    for topic in (graph.TOPIC_STATE, graph.TOPIC_COMMAND, graph.TOPIC_SERVOVALVE):
+        assert info.message_counts[topic] == r.messages[topic], topic
+
+
 @pytest.mark.parametrize('late', ['collector', 'recorder'])
 def test_nothing_is_lost_when_an_endpoint_is_discovered_seconds_late(ros_env, tmp_path, late):
     """A listener created 3 s after the loop's nodes (the harness's collector, or the recorder

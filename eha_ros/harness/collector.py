@@ -184,6 +184,14 @@ class Collector:
         return ((unanswered or last in self.current_cols['stamp_ns'][-3:])
                 and last in self.command_cols['stamp_ns'][-3:])
 
+    def behind(self, recorded: dict) -> dict:
+        """``{topic: (recorded, received here)}`` of the data topics (states, position and
+        current commands) of which the recorder's ``~/status`` counts, ``recorded``, are short
+        of what the collector received."""
+        return {t: (recorded[t], self.counters[t].received)
+                for t in (TOPIC_STATE, TOPIC_COMMAND, TOPIC_SERVOVALVE)
+                if t in recorded and recorded[t] < self.counters[t].received}
+
     def timing_ended(self) -> bool:
         """Every ticking node's final timing report (``RUN_ENDED``) arrived: the timing of the
         whole run, also of one shorter than the reports' window."""

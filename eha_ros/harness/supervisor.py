@@ -6,6 +6,7 @@ that ends, hangs or stalls, stops every node cleanly and restores this process;
 from __future__ import annotations
 
 import ctypes
+import json
 import os
 import signal
 import subprocess
@@ -18,6 +19,7 @@ import rclpy
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
+from std_srvs.srv import Trigger
 
 from eha_ros.graph import STATUS_DIVERGED, STATUS_STOPPED
 from eha_ros.nodes.command_generator import CommandGenerator
@@ -33,6 +35,9 @@ from .collector import Collector, evaluate_reports
 from .config import COLLECTOR, GraphConfig, GraphConfigError, GraphError, rt_pinning_warning
 from .result import describe_fault, GraphDataLoss, GraphFault, GraphResult
 
+#: At the end of a run, how long the harness waits for the recorder to hold every state and
+#: command the collector received before it stops the nodes (s).
+RECORDER_WAIT_S = 10.0
 #: After a stop request, how long node processes get to end on their own before the harness
 #: signals them (s): a second SIGINT could hit a recorder after it restored its handlers.
 _GRACE_S = 3.0
@@ -228,6 +233,10 @@ class GraphRun:
         result = self.collector.result(self.config, self.t0)
         result.interrupted = self.interrupted
         result.fault = self.fault
+        recorder = self.procs.get('recorder')
+        if (recorder is not None and recorder[0].poll() is None and self.fault is None
+                and not self.interrupted):
+            self._await_recorder()
         failure = self._stop_processes()
         if failure is not None:
             raise GraphError(failure)
@@ -340,6 +349,30 @@ class GraphRun:
                 break
             n_health = len(collector.health)
             end = time.monotonic() + 0.3
+
+    def _await_recorder(self) -> None:
+        """Before the publishers stop (a reliable sample not yet delivered dies with its
+        writer): wait until the recorder has received every state and command the collector
+        received (its ``~/status``), at most ``RECORDER_WAIT_S``; a recorder still short then
+        is said on stderr (the file's own counts show it)."""
+        client = self.collector.node.create_client(Trigger, '/recorder/status')
+        try:
+            end = time.monotonic() + RECORDER_WAIT_S
+            future, behind = None, None
+            while time.monotonic() < end:
+                if future is None and client.service_is_ready():
+                    future = client.call_async(Trigger.Request())
+                self.executor.spin_once(timeout_sec=0.02)
+                if future is not None and future.done():
+                    behind = self.collector.behind(json.loads(future.result().message))
+                    if not behind:
+                        return
+                    future = None
+            print(f'recorder: warning: after {RECORDER_WAIT_S:g} s, still short of what the '
+                  f'harness received: {behind or "no answer on /recorder/status"}',
+                  file=sys.stderr)
+        finally:
+            self.collector.node.destroy_client(client)
 
     def _stop_processes(self) -> str | None:
         """Stop the node processes (SIGINT; killed after 15 s); returns why the recorder failed."""

@@ -16,7 +16,9 @@ the size is checked against the bytes written out, so a file may exceed it by up
 each with its own metadata and the losses of its own span; ``--snapshot S`` keeps only the
 last S seconds in memory and writes them to the next numbered file when the ``~/snapshot``
 service (``std_srvs/srv/Trigger``) is called, and by itself when ``/eha/health`` turns to
-``LEVEL_ERROR``, so the moments before a fault are kept.
+``LEVEL_ERROR``, so the moments before a fault are kept.  ``~/status`` (``Trigger``) answers
+the messages received so far per topic, as JSON: the harness waits on it before it stops the
+publishers, so a recorder that lags (a loaded machine) loses no tail of the run.
 
 Every topic is subscribed to as serialized CDR (no deserialization) and written as-is, in
 rosbag2's MCAP layout (see :mod:`eha_ros.recording.writer`); each topic's channel is created
@@ -62,6 +64,7 @@ import argparse
 from collections import deque
 import dataclasses
 import datetime
+import json
 import os
 from pathlib import Path
 import re
@@ -280,7 +283,8 @@ class Recorder(Node):
             raise RecorderError(str(exc)) from None
 
     def _subscribe(self, states: List[_TopicState], namespace: str, queue_depth: int) -> None:
-        """Subscribe to ``states`` as raw CDR (snapshot mode: also the health; ``~/snapshot``)."""
+        """Subscribe to ``states`` as raw CDR; ``~/status`` (snapshot mode: also the health;
+        ``~/snapshot``)."""
         qos = graph.graph_qos(depth=queue_depth)
         # The start-up handshake (eha_ros.nodes.handshake): the graph starts only once every
         # subscription here has matched its publishers, so the recording misses no tick.
@@ -291,9 +295,9 @@ class Recorder(Node):
             state.subscription = self.create_subscription(
                 state.cls, state.topic, self._callback(state), topic_qos, raw=True)
             self.handshake.watch(state.subscription, state.topic)
+        from std_srvs.srv import Trigger
+        self.create_service(Trigger, '~/status', self._on_status_request)
         if self.snapshot_ns:
-            from std_srvs.srv import Trigger
-
             from eha_ros.msg import HealthStatus
             self.create_service(Trigger, '~/snapshot', self._on_snapshot_request)
             health = next(t for t, ty in graph.topics_in(namespace).items()
@@ -388,6 +392,13 @@ class Recorder(Node):
         if level == graph.LEVEL_ERROR and self._health_level != graph.LEVEL_ERROR:
             self.snapshot(f'health ERROR: {msg.message}')
         self._health_level = level
+
+    def _on_status_request(self, request, response):
+        """``~/status``: the messages received so far, ``{topic: count}`` as JSON (what a
+        harness waits for before it stops the publishers)."""
+        response.success = True
+        response.message = json.dumps({t: s.counter.received for t, s in self._states.items()})
+        return response
 
     def _on_snapshot_request(self, request, response):
         path = self.snapshot('requested on ~/snapshot')
