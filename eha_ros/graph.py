@@ -46,8 +46,7 @@ __all__ = ['undeclared_message',
            'STATUS_OK', 'STATUS_END_STOP', 'STATUS_CAVITATION', 'STATUS_DIVERGED',
            'STATUS_VALVE_TEST', 'STATUS_PREFLIGHT', 'STATUS_STOPPED', 'STATUS_NAMES', 'LEVEL_OK',
            'LEVEL_WARN', 'LEVEL_ERROR', 'LEVEL_CANNOT_ASSESS', 'LEVEL_NAMES',
-           'REFERENCE_SCENARIOS', 'NODES', 'TIMING_SUFFIX',
-           'RUN_ENDED']
+           'REFERENCE_SCENARIOS', 'NODES', 'TIMING_SUFFIX', 'RUN_ENDED']
 
 #: Default namespace of the actuator's own topics (``/diagnostics`` and ``/clock`` are global).
 NAMESPACE = '/eha'
