@@ -248,6 +248,40 @@ def test_realtime_command_generator_publishes_every_sample_on_the_tick_grid(ros_
         rclpy.try_shutdown(context=ctx)
 
 
+def test_a_catch_up_past_the_runs_end_reports_the_runs_samples_only(ros_env):
+    """A late wake of the realtime command generator that publishes the run's last sample and
+    later ones in one catch-up sends its final timing report right after the last sample: it
+    counts the run's samples (as many as the plant's states), not those past the end."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from eha_ros.graph import RUN_ENDED
+    from eha_ros.nodes.command_generator import CommandGenerator
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+    try:
+        node = CommandGenerator(context=ctx, parameter_overrides=[
+            Parameter('mode', value='realtime'), Parameter('scenario', value='step_0p1'),
+            Parameter('duration_s', value=0.005), Parameter('max_catch_up', value=20)])
+        node.pub.publish = lambda m: None
+        reports = []
+        node.timing._send = reports.append
+        ms, wall = 1_000_000, 5_000_000_000
+        node._t0_ns = 1_700_000_000_000_000_000
+        node.timing.start(wall)
+        node._anchor(wall)
+        node._on_loop_wake(wall + 3 * ms)               # samples 0-3
+        assert reports == [] and node.published == 4
+        node._on_loop_wake(wall + 9 * ms)               # 4-9: the run ends at sample 5 (5 ms)
+        assert node.published == 10 and len(reports) == 1
+        assert reports[0][RUN_ENDED] == 1 and reports[0]['Events since startup'] == 6
+        node._on_loop_wake(wall + 12 * ms)
+        assert len(reports) == 1
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=ctx)
+
+
 @pytest.mark.parametrize('trigger, per_state', [('state', 1), ('timer', 0)])
 def test_realtime_controller_trigger(ros_env, trigger, per_state):
     """Realtime controller: by default every plant state clocks one control step (current from

@@ -513,7 +513,8 @@ def test_timing_reports_cover_the_run_from_the_synchronised_start(ros_env):
             assert values[graph.RUN_ENDED] == '1', (mode, name, values)
             # (the lockstep plant publishes tick 0 at the start and counts the ticks it advances)
             lockstep_plant = mode == 'lockstep' and name.startswith('servovalve_plant')
-            assert int(values['Events since startup']) == len(r.state['tick']) - lockstep_plant
+            assert (int(values['Events since startup'])
+                    == len(r.state['tick']) - lockstep_plant), (mode, name, values)
             realtime_keys = {'On time since startup (%)', 'Slipped ticks since startup',
                              'Period jitter p99 since startup (ms)'}
             if mode == 'realtime':

@@ -170,8 +170,8 @@ class CommandGenerator(Node):
         t_ns = stamp_to_ns(msg.clock)
         self._publish(t_ns, stamp=msg.clock)
         self.timing.tick(began)
+        self._end_timing(t_ns, began)
         self.timing.busy(began)
-        self._end_timing(t_ns)
 
     def _on_loop_wake(self, now: int):
         """The sample loop woke (its thread, the lock held): publish every sample due by
@@ -196,13 +196,17 @@ class CommandGenerator(Node):
             due = self._rt_anchor + k * self.period_ns
             self.rt_loop.record(k, due, computed, time.monotonic_ns())
             self.timing.tick(now, now - due)
+            # the final report right after the run's last sample, before a later one of the
+            # same catch-up counts in it
+            self._end_timing(k * self.period_ns, began)
         self.timing.busy(began)
-        self._end_timing((self._rt_next - 1) * self.period_ns)
 
-    def _end_timing(self, t_ns: int) -> None:
-        """After the sample of scenario time ``t_ns``: the final timing report once it reaches
-        the run's end (:meth:`TickTiming.publish_final`)."""
-        if t_ns >= round((self.duration_s or self.scenario.duration_s) * 1e9):
+    def _end_timing(self, t_ns: int, began: int) -> None:
+        """After the sample of scenario time ``t_ns`` (its callback began at ``began``): the
+        final timing report once it reaches the run's end (:meth:`TickTiming.publish_final`)."""
+        if not self.timing.ended and t_ns >= round((self.duration_s or self.scenario.duration_s)
+                                                   * 1e9):
+            self.timing.busy(began)
             self.timing.publish_final()
 
     def close(self) -> None:
