@@ -6,9 +6,16 @@ closed loop on ``step_0p1`` at 1 us (``first_s``), then the same run again in th
 (``again_s``).  The shipped surrogates' loops are compiled once and cached on disk
 (:class:`eha_ros.surrogates.base.Forms`), so ``first_s`` is loading, not compiling, once
 the cache holds them; the first call of all (an empty cache, as on a fresh clone) compiles
-and writes it.  Run it twice to see both.  Prints one JSON object, with the load average.
+and writes it.  Run it twice to see both, or with ``--cold``: each process then starts from an
+empty cache of its own (a temporary ``NUMBA_CACHE_DIR``), so ``first_s`` is the compile.
 
-    python bench/first_run.py [--models hf,lut,dlut] [--smoke]
+``--inline-copy both`` (with ``--cold``) times each model twice, alternating in one run: with
+the package's copy of an inlined callee (one scope for all its blocks,
+:func:`eha_ros.jit_cache.share_inline_copies`) and with numba's own per-block copy, and prints
+the ratio of their ``first_s``.  Prints one JSON object, with the load average.
+
+    python bench/first_run.py [--models hf,lut,dlut] [--cold]
+                              [--inline-copy shared|per-block|both] [--smoke]
 """
 
 import argparse
@@ -16,11 +23,15 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 
 CHILD = r'''
 import json, sys, time
 t0 = time.perf_counter()
+if sys.argv[2] == 'per-block':  # numba's own copy: mark it as the package's, which then keeps it
+    from numba.core.inline_closurecall import InlineWorker
+    InlineWorker.inline_ir.shared_copy = True
 from eha_ros.physics import default_params, simulate
 from eha_ros.surrogates.registry import load_surrogate
 p = default_params()
@@ -42,6 +53,11 @@ ALL = ('hf', 'lut', 'ga', 'nn', 'nn2', 'dlut', 'dnn', 'dga')
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--models', default=','.join(ALL))
+    ap.add_argument('--cold', action='store_true',
+                    help='each process from an empty numba cache of its own: the compile')
+    ap.add_argument('--inline-copy', choices=('shared', 'per-block', 'both'), default='shared',
+                    help="the package's copy of an inlined callee, numba's own, or both "
+                         'alternating (with their ratio)')
     ap.add_argument('--smoke', action='store_true', help='hf and lut only: a check, no figure')
     a = ap.parse_args(argv)
     models = ['hf', 'lut'] if a.smoke else a.models.split(',')
@@ -50,21 +66,44 @@ def main(argv=None) -> int:
         print(f'first_run: error: unknown model {bad[0]!r} (one of {", ".join(ALL)})',
               file=sys.stderr)
         return 2
+    if a.inline_copy == 'both' and not a.cold:
+        print('first_run: error: --inline-copy both compares compiles: add --cold (from a '
+              'shared cache the second run would load what the first compiled)', file=sys.stderr)
+        return 2
+    copies = ('shared', 'per-block') if a.inline_copy == 'both' else (a.inline_copy,)
     out = {'benchmark': 'first_run', 'smoke': a.smoke, 'scenario': 'step_0p1',
-           'duration_s': 0.01, 'dt_s': 1e-6, 'load_before': os.getloadavg()[0], 'models': {}}
+           'duration_s': 0.01, 'dt_s': 1e-6, 'cold': a.cold, 'inline_copy': a.inline_copy,
+           'load_before': os.getloadavg()[0], 'models': {}}
     for m in models:
-        t = time.perf_counter()
-        r = subprocess.run([sys.executable, '-c', CHILD, m], capture_output=True, text=True)
-        if r.returncode != 0:
-            print(f'first_run: error: {m}: {r.stderr.strip().splitlines()[-1]}',
-                  file=sys.stderr)
-            return 1
-        res = json.loads(r.stdout.strip().splitlines()[-1])
-        res['process_s'] = time.perf_counter() - t
-        out['models'][m] = {k: round(v, 3) for k, v in res.items()}
+        for copy in copies:
+            res = _child(m, copy, a.cold)
+            if isinstance(res, str):
+                print(f'first_run: error: {m} ({copy} copy): {res}', file=sys.stderr)
+                return 1
+            key = m if len(copies) == 1 else f'{m} ({copy} copy)'
+            out['models'][key] = {k: round(v, 3) for k, v in res.items()}
+        if len(copies) == 2:
+            out['models'][m] = {'first_s ratio, shared / per-block': round(
+                out['models'][f'{m} (shared copy)']['first_s']
+                / out['models'][f'{m} (per-block copy)']['first_s'], 3)}
     out['load_after'] = os.getloadavg()[0]
     print(json.dumps(out))
     return 0
+
+
+def _child(model: str, copy: str, cold: bool) -> dict | str:
+    """One model's first runs in a fresh process (:data:`CHILD`): its figures, or the last
+    line of its error."""
+    with tempfile.TemporaryDirectory(prefix='first_run_cache_') as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache) if cold else None
+        t = time.perf_counter()
+        r = subprocess.run([sys.executable, '-c', CHILD, model, copy], capture_output=True,
+                           text=True, env=env)
+        if r.returncode != 0:
+            return (r.stderr.strip().splitlines() or ['exit status %d' % r.returncode])[-1]
+        res = json.loads(r.stdout.strip().splitlines()[-1])
+        res['process_s'] = time.perf_counter() - t
+        return res
 
 
 if __name__ == '__main__':
