@@ -10,7 +10,7 @@ run in :mod:`.events`.  Nothing here imports rclpy or torch.
 
 from eha_ros.jit_cache import share_inline_copies
 
-share_inline_copies()  # before any kernel compiles: a quarter of numba's compile time
+share_inline_copies()  # before any kernel compiles: a third of numba's compile time
 
 # (the imports below follow it: E402)
 from .commands import Scenario, get_scenario, load_scenarios  # noqa: E402
