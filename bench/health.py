@@ -34,8 +34,9 @@ Prints one JSON object:
     python bench/health.py [--realtime-s 20] [--quick] [--no-drift] [--workers 2] [--smoke]
 
 ``--quick`` runs fewer cases; ``--smoke`` the fewest that pass through every section
-(:data:`SIZES`; the drifted sets in process, 1 s realtime): a check that the bench runs, no
-figure.
+(:data:`SIZES`; of the drifted sets, in process, only the first of each module: every set is
+run by ``health_valve.py --smoke`` and ``health_preflight.py --smoke``; 1 s realtime): a check
+that the bench runs, no figure.
 """
 
 import argparse
@@ -272,11 +273,14 @@ def main():
     out = {'benchmark': 'health', 'smoke': args.smoke, 'size': size_name,
            'load_before': [round(x, 2) for x in os.getloadavg()]}
     if not args.no_drift:
-        from health_valve import valve_drift
-        from health_preflight import SIZES as PREFLIGHT_SIZES, SMOKE_SIZES, preflight_drift
-        out['valve_test_drift'] = valve_drift(args.workers, size_name)
+        from health_valve import SETS as VALVE_SETS, valve_drift
+        from health_preflight import (SETS as PREFLIGHT_SETS, SIZES as PREFLIGHT_SIZES,
+                                      SMOKE_SIZES, preflight_drift)
+        out['valve_test_drift'] = valve_drift(
+            args.workers, size_name, only=VALVE_SETS[:1] if args.smoke else VALVE_SETS)
         out['preflight_drift'] = preflight_drift(
-            workers=args.workers, sizes=SMOKE_SIZES if args.smoke else PREFLIGHT_SIZES)
+            workers=args.workers, sizes=SMOKE_SIZES if args.smoke else PREFLIGHT_SIZES,
+            only=PREFLIGHT_SETS[:1] if args.smoke else PREFLIGHT_SETS)
     out['valve_test'] = bench_valve_test(p0, size)
     out['preflight'] = bench_preflight(p0, lim, size)
     out['in_service'] = bench_in_service(p0, lim, size)
