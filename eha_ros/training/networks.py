@@ -33,7 +33,7 @@ import time
 
 import numpy as np
 
-__all__ = ['ACTIVATIONS', 'make_torch_mlp', 'torch_from_data', 'train_lm', 'train_adam_lbfgs',
+__all__ = ['ACTIVATIONS', 'make_torch_mlp', 'train_lm', 'train_adam_lbfgs',
            'fit_network', 'minmax', 'map_split', 'ALGORITHMS', 'Split', 'LMSettings',
            'AdamLBFGSSettings']
 
@@ -219,18 +219,6 @@ def make_torch_mlp(*, d_in: int, d_hidden: list, d_out: int = 1, seed: int = 0,
             w.copy_((torch.rand(w.shape, generator=gen, dtype=torch.float64) * 2 - 1) * lim)
             b.zero_()
     return model
-
-
-def torch_from_data(data):
-    """Rebuild the torch module of a packed MLP (for checks against the exported kernel)."""
-    from eha_ros.surrogates.nn import unpack
-
-    torch = _torch()
-    u = unpack(data)
-    model = make_torch_mlp(d_in=u['sizes'][0], d_hidden=u['sizes'][1:-1], d_out=u['sizes'][-1])
-    with torch.no_grad():
-        model.theta.copy_(torch.as_tensor(np.asarray(data[3], dtype=float)))
-    return model.eval()
 
 
 # --- training --------------------------------------------------------------------------------
