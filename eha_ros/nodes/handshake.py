@@ -40,8 +40,7 @@ from rclpy.publisher import Publisher
 
 from eha_ros.graph import is_latched, TOPIC_HANDSHAKE, topic_qos
 
-__all__ = ['COORDINATOR', 'Handshake', 'StartCoordinator', 'HandshakeError', 'evaluate',
-           'parse_report']
+__all__ = ['COORDINATOR', 'Handshake', 'StartCoordinator', 'evaluate', 'parse_report']
 
 #: The node that decides the start (it owns the simulation clock).
 COORDINATOR = 'servovalve_plant'
@@ -51,10 +50,6 @@ READER_DEPTH = 1000
 
 #: How often a node polls its endpoints' matched counts before the start (s).
 POLL_S = 0.01
-
-
-class HandshakeError(RuntimeError):
-    """The start-up handshake did not complete in time."""
 
 
 def evaluate(reports: Dict[str, Dict[str, int]], nodes: Iterable[str]) -> Optional[str]:
