@@ -24,8 +24,7 @@ from numba import njit
 
 from .params import ParameterError, config_dir, read_yaml
 
-__all__ = ['Scenario', 'WAVEFORMS', 'command_value', 'command_series', 'load_scenarios',
-           'get_scenario']
+__all__ = ['Scenario', 'WAVEFORMS', 'command_value', 'load_scenarios', 'get_scenario']
 
 #: Valve-test procedures a scenario may name (:mod:`.maintenance`): the settled test, and the
 #: reference's 10 ms map transient.
@@ -156,11 +155,6 @@ class Scenario:
         t = np.atleast_1d(np.asarray(t_s, dtype=float))
         out = np.array([command_value(kind, args, ct, cv, ti) for ti in t])
         return out if np.ndim(t_s) else float(out[0])
-
-
-def command_series(scenario: Scenario, t_s: np.ndarray) -> np.ndarray:
-    """Command [m] sampled at the times ``t_s``."""
-    return scenario.value(np.asarray(t_s, dtype=float))
 
 
 _FIELDS = {f.name for f in dataclasses.fields(Scenario)} - {'name'}
