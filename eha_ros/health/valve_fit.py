@@ -65,16 +65,13 @@ from eha_ros.physics.maps import WEAR_RANGES, steady_map
 from eha_ros.physics.params import ParameterError, replace
 
 __all__ = ['read_calibration', 'ValveFitEstimator', 'FitCalibration', 'load_calibration',
-           'FIT_NAMES', 'FIT_FILE', 'KHSV_RANGE', 'fit_curves']
+           'FIT_NAMES', 'FIT_FILE', 'fit_curves']
 
 FIT_FILE = 'valve_fit.npz'
 REBUILD = 'eha_ros.training.valve_fit'
 #: The fitted parameters (plant names).
 FIT_NAMES = ('radial_clearance_m', 'overlap_supply_m', 'valve_degradation',
              'leakage_coeff_m3_s_pa')
-#: Khsv range of the fit's bounds; the envelope the estimator is calibrated over is that of
-#: ``config/test_bench.yaml`` (``nuisance: valve_degradation``).
-KHSV_RANGE = (0.0, 0.6)
 _NOISE_REL = 0.01
 _NOISE_FLOOR_PA = 2e4
 _BAND = 1.05
