@@ -114,10 +114,9 @@ class GraphRun:
         self.env = dict(os.environ if env is None else env)
         self.duration_ns = round(config.resolved_duration() * 1e9)
         self.params = config.node_parameters()
-        if config.record and Path(config.record).exists():
-            raise GraphError(f'{config.record} exists: refusing to overwrite it')
-        if config.trace and Path(config.trace).exists():
-            raise GraphError(f'{config.trace} exists: refusing to overwrite it')
+        for path in (config.record, config.trace):
+            if path and Path(path).exists():
+                raise GraphError(f'{path} exists: refusing to overwrite it')
         self.delays = dict(delays or {})
         unknown = set(self.delays) - set(self.params) - {COLLECTOR}
         if unknown:
@@ -408,8 +407,7 @@ class GraphRun:
             if not path.is_file():
                 out[node] = {'missing': f'no trace: {node} did not shut down cleanly'}
                 continue
-            traces[node] = summarise(load_node_trace(path))
-            t = traces[node]
+            t = traces[node] = summarise(load_node_trace(path))
             out[node] = {'ticks': len(t['ticks']['tick']), 'dropped': t['dropped'],
                          'complete': t['complete'], 'shares': t['shares']}
         write_trace(self.config.trace, traces, time.time_ns() - time.monotonic_ns())
