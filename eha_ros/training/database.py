@@ -59,14 +59,10 @@ class DatabaseSpec:
     def grid(self, p: PlantParams):
         xs = spool_grid(self.n_xs, p.spool_stroke_m)
         q = np.linspace(-self.q_max_m3_s, self.q_max_m3_s, self.n_q)
-        if self.n_overlap == 1:
-            lap = np.array([p.overlap_supply_m])
-        else:
-            lap = np.linspace(*WEAR_RANGES['overlap_m'], self.n_overlap)
-        if self.n_clearance == 1:
-            clr = np.array([p.radial_clearance_m])
-        else:
-            clr = np.linspace(*WEAR_RANGES['radial_clearance_m'], self.n_clearance)
+        lap = (np.array([p.overlap_supply_m]) if self.n_overlap == 1
+               else np.linspace(*WEAR_RANGES['overlap_m'], self.n_overlap))
+        clr = (np.array([p.radial_clearance_m]) if self.n_clearance == 1
+               else np.linspace(*WEAR_RANGES['radial_clearance_m'], self.n_clearance))
         return xs, q, lap, clr
 
     @property
