@@ -76,11 +76,8 @@ class CorruptError(RecordingError):
 
 def _prefixes() -> List[Path]:
     """Install prefixes to look for ``share/<pkg>``: ``AMENT_PREFIX_PATH``, then ``sys.prefix``."""
-    out: List[Path] = []
-    for entry in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) + [sys.prefix]:
-        if entry and Path(entry) not in out:
-            out.append(Path(entry))
-    return out
+    entries = os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) + [sys.prefix]
+    return list(dict.fromkeys(Path(entry) for entry in entries if entry))
 
 
 def _interface_file(pkg: str, name: str, suffix: str) -> Optional[Path]:
@@ -211,11 +208,8 @@ def qos_profile_dict(qos=None) -> Dict[str, Any]:
                 'liveliness': 'automatic', 'liveliness_lease_duration': dict(_INFINITE),
                 'avoid_ros_namespace_conventions': False}
     if isinstance(qos, Mapping):
-        out = dict(qos)
-        for key in ('deadline', 'lifespan', 'liveliness_lease_duration'):
-            if key in out:
-                out[key] = _duration(out[key])
-        return out
+        durations = ('deadline', 'lifespan', 'liveliness_lease_duration')
+        return {k: _duration(v) if k in durations else v for k, v in qos.items()}
     return {'history': _policy(qos.history), 'depth': int(qos.depth),
             'reliability': _policy(qos.reliability), 'durability': _policy(qos.durability),
             'deadline': _duration(qos.deadline), 'lifespan': _duration(qos.lifespan),

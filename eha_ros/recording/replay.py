@@ -152,10 +152,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     stop = StopRequest()
     try:
         node = rclpy.create_node('eha_replay')
-        publishers = {}
-        for topic, type_name in selected.items():
-            publishers[topic] = node.create_publisher(
-                graph.message_class(type_name), topic, _publisher_qos(info, topic))
+        publishers = {topic: node.create_publisher(graph.message_class(type_name), topic,
+                                                   _publisher_qos(info, topic))
+                      for topic, type_name in selected.items()}
         synth_clock = None
         if graph.TOPIC_CLOCK not in selected and not args.no_clock:
             synth_clock = node.create_publisher(Clock, graph.TOPIC_CLOCK, graph.graph_qos())

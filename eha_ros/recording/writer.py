@@ -166,10 +166,8 @@ class McapWriter:
             text = definition if definition is not None else message_definition(type_name)
             self._schemas[type_name] = self._writer.register_schema(
                 name=type_name, encoding=SCHEMA_ENCODING, data=text.encode('utf-8'))
-        if isinstance(offered_qos_profiles, str):
-            qos_yaml = offered_qos_profiles
-        else:
-            qos_yaml = qos_profiles_yaml(offered_qos_profiles)
+        qos_yaml = (offered_qos_profiles if isinstance(offered_qos_profiles, str)
+                    else qos_profiles_yaml(offered_qos_profiles))
         hash_string = type_hash(type_name) if topic_type_hash is None else topic_type_hash
         channel_id = self._writer.register_channel(
             topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=self._schemas[type_name],
@@ -244,15 +242,12 @@ class McapWriter:
         duration = (self._last_log_ns - start) if self._last_log_ns is not None else 0
         total = sum(self.message_counts.values())
         name = self.path.name if self.path is not None else ''
-        topics = []
-        for topic, meta in self._topic_meta.items():
-            topics.append({
-                'topic_metadata': {
-                    'name': topic, 'type': meta['type'],
-                    'serialization_format': MESSAGE_ENCODING,
-                    'offered_qos_profiles': yaml.safe_load(meta['qos']) or [],
-                    'type_description_hash': meta['hash']},
-                'message_count': self.message_counts.get(topic, 0)})
+        topics = [{'topic_metadata': {'name': topic, 'type': meta['type'],
+                                      'serialization_format': MESSAGE_ENCODING,
+                                      'offered_qos_profiles': yaml.safe_load(meta['qos']) or [],
+                                      'type_description_hash': meta['hash']},
+                   'message_count': self.message_counts.get(topic, 0)}
+                  for topic, meta in self._topic_meta.items()]
         return {
             'version': ROSBAG2_METADATA_VERSION,
             'storage_identifier': 'mcap',
