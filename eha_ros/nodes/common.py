@@ -54,14 +54,15 @@ def advertise(node: Node, msg_type, topic: str):
         msg_type, topic, QOS, event_callbacks=PublisherEventCallbacks(use_default_callbacks=False))
 
 
-def take_waiting(subscription, msg_type):
+def take_waiting(subscription, msg_type, raw: bool = False):
     """Every message waiting on ``subscription`` (one no executor spins), oldest first, as
     ``(message, info)``: rclpy's ``take`` with the message info (sequence number, receipt
-    time), without an executor pass or a callback per message."""
+    time), without an executor pass or a callback per message; ``raw``: the message as its
+    serialized bytes."""
     handle = subscription.handle
     while True:
         with handle:
-            taken = handle.take_message(msg_type, False)
+            taken = handle.take_message(msg_type, raw)
         if taken is None:
             return
         yield taken

@@ -83,7 +83,7 @@ from rclpy.utilities import remove_ros_args
 
 from eha_ros import graph
 from eha_ros.nodes.common import (apply_realtime_settings, declare, declare_realtime,
-                                  refuse_undeclared, validator)
+                                  refuse_undeclared, take_waiting, validator)
 from eha_ros.nodes.handshake import Handshake
 from eha_ros.physics import ParameterError
 from eha_ros.recording.definitions import qos_profile_dict, SequenceGapCounter
@@ -341,13 +341,8 @@ class Recorder(Node):
         def on_message(data: bytes, info) -> None:
             self._record(state, data, info)
             # Take what else is waiting now: far cheaper than one executor pass each.
-            handle = state.subscription.handle
-            while True:
-                with handle:
-                    taken = handle.take_message(state.cls, True)
-                if taken is None:
-                    return
-                self._record(state, taken[0], taken[1])
+            for taken_data, taken_info in take_waiting(state.subscription, state.cls, raw=True):
+                self._record(state, taken_data, taken_info)
         return on_message
 
     def _register(self, state: _TopicState, writer: Optional[McapWriter] = None) -> None:
