@@ -90,15 +90,11 @@ class Point:
 
 
 def _float(name, v, where):
-    if isinstance(v, bool):
-        raise SpecError(f'{where}: {name} = {v!r} is not a number')
-    if isinstance(v, str):
+    if isinstance(v, (str, int, float)) and not isinstance(v, bool):
         try:
             return float(v)
         except ValueError:
-            raise SpecError(f'{where}: {name} = {v!r} is not a number') from None
-    if isinstance(v, (int, float)):
-        return float(v)
+            pass
     raise SpecError(f'{where}: {name} = {v!r} is not a number')
 
 
@@ -538,11 +534,7 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
 def count_cases(spec: Spec) -> int:
     """The number of cases of ``spec``, counted without building them (the size guard runs
     before the cases are made)."""
-    n_inputs = 1
-    for v in spec.grid.values():
-        n_inputs *= len(v)
-    if not spec.grid:
-        n_inputs = 0
+    n_inputs = math.prod(len(v) for v in spec.grid.values()) if spec.grid else 0
     if spec.random:
         n_inputs = max(n_inputs, 1) * spec.random['n']
     n_points = n_inputs * len(spec.seeds) + sum(
