@@ -181,9 +181,8 @@ class ServovalvePlant(Node):
             # hand-overs with the loop's thread
             self._command_node = Node(self.get_name() + '_commands', context=self.context,
                                       start_parameter_services=False)
-            command_sub = subscribe(self._command_node, ServovalveCommand, TOPIC_SERVOVALVE,
-                                    lambda msg: None)
-            self._command_sub = command_sub
+            command_sub = self._command_sub = subscribe(self._command_node, ServovalveCommand,
+                                                        TOPIC_SERVOVALVE, lambda msg: None)
         else:
             command_sub = subscribe(self, ServovalveCommand, TOPIC_SERVOVALVE,
                                     self._on_command)
