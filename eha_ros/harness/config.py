@@ -170,9 +170,8 @@ class GraphConfig:
                                           parameter_nodes=[n for n in out if n in NODES])
         for node, values in self.node_params.items():
             if node not in out:
-                known = ', '.join(out)
                 raise GraphConfigError(f'node_params: no node {node!r} in this graph '
-                                       f'(nodes: {known})')
+                                       f'(nodes: {", ".join(out)})')
             out[node].update(values)
         _check_declared(out)
         return out
