@@ -361,19 +361,17 @@ def _report(s) -> str:
               'same messages bit for bit):', '',
               '| run | messages | level | live = offline | verdict |', '| --- | ---: | --- | --- '
               '| --- |']
-    for key, h in s.get('health_live', {}).items():
-        lines.append(f'| {key} | {h["live_messages"]} | {h["level"]} | '
-                     f'{ {True: "yes", False: "NO", None: "n/a"}[h["live_agrees"]]} | '
-                     f'{h["message"]} |')
+    lines += [f'| {key} | {h["live_messages"]} | {h["level"]} | '
+              f'{ {True: "yes", False: "NO", None: "n/a"}[h["live_agrees"]]} | {h["message"]} |'
+              for key, h in s.get('health_live', {}).items()]
     lines += ['', 'Offline diagnosis of the hf recordings (`eha-diagnose`, nominal valve: '
               'clearance 2.5 um, overlap 1 um):', '',
               '| scenario | clearance [um] | overlap [um] | residual [MPa] | level |',
               '| --- | ---: | ---: | ---: | --- |']
-    for sc, d in s['diagnosis_hf'].items():
-        lines.append(f'| {sc} | {d["radial_clearance_m"] * 1e6:.2f} ± '
-                     f'{d["radial_clearance_std_m"] * 1e6:.2f} | {d["overlap_m"] * 1e6:.2f} ± '
-                     f'{d["overlap_std_m"] * 1e6:.2f} | {d["pressure_residual_pa"] / 1e6:.3f} | '
-                     f'{d["level"]} |')
+    lines += [f'| {sc} | {d["radial_clearance_m"] * 1e6:.2f} ± '
+              f'{d["radial_clearance_std_m"] * 1e6:.2f} | {d["overlap_m"] * 1e6:.2f} ± '
+              f'{d["overlap_std_m"] * 1e6:.2f} | {d["pressure_residual_pa"] / 1e6:.3f} | '
+              f'{d["level"]} |' for sc, d in s['diagnosis_hf'].items()]
     if s.get('valve_test'):
         lines += ['', 'Maintenance test (the plant runs the reference\'s map sweep, jack '
                   'clamped, then the pre-flight check, jack free; `eha-diagnose` reads every '
@@ -396,9 +394,8 @@ def _report(s) -> str:
     lines += ['', 'Plots: one folder per scenario (`jack_position.png`, `p12.png`, '
               '`spool_position.png`), every model overlaid.', '',
               'Runs (simulated / wall seconds):', '']
-    for key, r in s['runs'].items():
-        lines.append(f'- `{r["file"]}`: {r["sim_s"]:.2f} s / {r["wall_s"]:.1f} s, '
-                     f'{r["ticks"]} ticks')
+    lines += [f'- `{r["file"]}`: {r["sim_s"]:.2f} s / {r["wall_s"]:.1f} s, {r["ticks"]} ticks'
+              for r in s['runs'].values()]
     return '\n'.join(lines) + '\n'
 
 
