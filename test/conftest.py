@@ -41,17 +41,3 @@ def eha_graph(ros_env):
         return run_graph(GraphConfig(**fields), processes=processes, env=ros_env,
                          timeout_s=timeout_s, log_dir=ros_env.get('ROS_LOG_DIR'))
     return run
-
-
-#: Modules whose tests run sweeps, benches or graphs without the ros_env fixture.
-_LONG_MODULES = {'test_benches', 'test_campaign', 'test_sweep', 'test_valve_fit', 'test_watchdog'}
-
-
-def pytest_collection_modifyitems(config, items):
-    """Long tests first (those that start nodes, sweeps or benches), the rest after them, each
-    part in its collected order: the xdist workers then end on short tests, not one of them
-    on a graph run of half a minute while the other waits."""
-    def long(item) -> bool:
-        return bool({'ros_env', 'eha_graph'} & set(getattr(item, 'fixturenames', ()))) or (
-            item.module.__name__.rpartition('.')[2] in _LONG_MODULES)
-    items[:] = [i for i in items if long(i)] + [i for i in items if not long(i)]
