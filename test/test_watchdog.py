@@ -163,9 +163,10 @@ def test_a_dead_controller_trips_the_plants_command_watchdog(ros_env, tmp_path, 
     assert f'{action} since tick {trips[-1]["tick_index"]}' in diag['message']
     assert safe[first + 10:].size >= 50
     if action == 'null_current':  # the spool returns to null (a few ms): the jack stops
-        # against its speed under fresh commands (on a loaded machine the ticks just before
-        # the last trip can hold earlier trips, the jack already stopped)
-        controlled = (st['command_age_ticks'][:first] == 0) & ~safe[:first]
+        # against its speed while no safe action was in force (on a loaded machine the ticks
+        # just before the last trip can hold earlier trips, the jack already stopped; and a
+        # controller answering a tick late leaves commands one tick old, not stale)
+        controlled = ~safe[:first]
         moving = np.mean(np.abs(st['jack_velocity_m_s'][:first][controlled]))
         assert controlled.sum() >= 100 and moving > 0
         assert np.median(np.abs(st['jack_velocity_m_s'][first + 20:])) < 0.2 * moving
