@@ -18,7 +18,7 @@ Each section records the load averages before and after (``os.getloadavg``).
 
     python bench/rig.py [--runs 50] [--event-runs 10] [--realtime-s 10] [--smoke]
 
-``--smoke``: one lockstep run, two event runs and 0.5 s of realtime: a check, no figure.
+``--smoke``: one lockstep run, one event run and 0.5 s of realtime: a check, no figure.
 """
 
 import argparse
@@ -120,7 +120,7 @@ def main():
     ap.add_argument('--smoke', action='store_true', help='tiny counts: a check, no figure')
     args = ap.parse_args()
     if args.smoke:
-        args.runs, args.event_runs, args.realtime_s = 1, 2, 0.5
+        args.runs, args.event_runs, args.realtime_s = 1, 1, 0.5
     out = {'benchmark': 'rig', 'smoke': args.smoke, 'cores': os.cpu_count()}
     if args.runs:
         out['lossless'] = lossless(args.runs)
