@@ -12,10 +12,15 @@ empty cache of its own (a temporary ``NUMBA_CACHE_DIR``), so ``first_s`` is the 
 ``--inline-copy both`` (with ``--cold``) times each model twice, alternating in one run: with
 the package's copy of an inlined callee (one scope for all its blocks,
 :func:`eha_ros.jit_cache.share_inline_copies`) and with numba's own per-block copy, and prints
-the ratio of their ``first_s``.  Prints one JSON object, with the load average.
+the ratio of their ``first_s``.  ``--blas-probe both`` does the same for numba's BLAS probe:
+the package's look for the file (:func:`eha_ros.jit_cache.defer_blas_probe`) against numba's
+import of ``scipy.linalg``, at the first kernel load of a process (without ``--cold``: a
+loaded kernel, as a node's start has it).  Each child also reports its CPU time
+(``cpu_s``).  Prints one JSON object, with the load average.
 
     python bench/first_run.py [--models hf,lut,dlut] [--cold]
-                              [--inline-copy shared|per-block|both] [--smoke]
+                              [--inline-copy shared|per-block|both]
+                              [--blas-probe files|numba|both] [--smoke]
 """
 
 import argparse
@@ -32,6 +37,9 @@ t0 = time.perf_counter()
 if sys.argv[2] == 'per-block':  # numba's own copy: mark it as the package's, which then keeps it
     from numba.core.inline_closurecall import InlineWorker
     InlineWorker.inline_ir.shared_copy = True
+if sys.argv[3] == 'numba':  # numba's own BLAS probe: mark the package's as installed
+    from numba.core.cpu import CPUContext
+    CPUContext.load_additional_registries.deferred_blas_probe = True
 from eha_ros.physics import default_params, simulate
 from eha_ros.surrogates.registry import load_surrogate
 p = default_params()
@@ -44,7 +52,8 @@ for _ in range(2):
     simulate(p, 'step_0p1', duration_s=0.01, dt_s=1e-6, controller_period_s=1e-3,
              record_dt_s=None, fluid=fluid)
     runs.append(time.perf_counter() - t)
-print(json.dumps({'import_load_s': t1 - t0, 'first_s': runs[0], 'again_s': runs[1]}))
+print(json.dumps({'import_load_s': t1 - t0, 'first_s': runs[0], 'again_s': runs[1],
+                  'cpu_s': time.process_time()}))
 '''
 
 ALL = ('hf', 'lut', 'ga', 'nn', 'nn2', 'dlut', 'dnn', 'dga')
@@ -58,6 +67,10 @@ def main(argv=None) -> int:
     ap.add_argument('--inline-copy', choices=('shared', 'per-block', 'both'), default='shared',
                     help="the package's copy of an inlined callee, numba's own, or both "
                          'alternating (with their ratio)')
+    ap.add_argument('--blas-probe', choices=('files', 'numba', 'both'), default='files',
+                    help="numba's import-time BLAS probe by the package's file check, by "
+                         "numba's import of scipy.linalg, or both alternating (with their "
+                         'ratio)')
     ap.add_argument('--smoke', action='store_true', help='hf and lut only: a check, no figure')
     a = ap.parse_args(argv)
     models = ['hf', 'lut'] if a.smoke else a.models.split(',')
@@ -70,34 +83,45 @@ def main(argv=None) -> int:
         print('first_run: error: --inline-copy both compares compiles: add --cold (from a '
               'shared cache the second run would load what the first compiled)', file=sys.stderr)
         return 2
-    copies = ('shared', 'per-block') if a.inline_copy == 'both' else (a.inline_copy,)
+    if a.inline_copy == 'both' and a.blas_probe == 'both':
+        print('first_run: error: compare one thing at a time: --inline-copy both or '
+              '--blas-probe both', file=sys.stderr)
+        return 2
+    if a.inline_copy == 'both':
+        variants = [(c, a.blas_probe, f'{c} copy') for c in ('shared', 'per-block')]
+    elif a.blas_probe == 'both':
+        variants = [(a.inline_copy, b, f'{b} probe') for b in ('files', 'numba')]
+    else:
+        variants = [(a.inline_copy, a.blas_probe, None)]
     out = {'benchmark': 'first_run', 'smoke': a.smoke, 'scenario': 'step_0p1',
            'duration_s': 0.01, 'dt_s': 1e-6, 'cold': a.cold, 'inline_copy': a.inline_copy,
+           'blas_probe': a.blas_probe,
            'load_before': os.getloadavg()[0], 'models': {}}
     for m in models:
-        for copy in copies:
-            res = _child(m, copy, a.cold)
+        for copy, probe, label in variants:
+            res = _child(m, copy, probe, a.cold)
             if isinstance(res, str):
-                print(f'first_run: error: {m} ({copy} copy): {res}', file=sys.stderr)
+                print(f'first_run: error: {m} ({label or "default"}): {res}', file=sys.stderr)
                 return 1
-            key = m if len(copies) == 1 else f'{m} ({copy} copy)'
+            key = m if label is None else f'{m} ({label})'
             out['models'][key] = {k: round(v, 3) for k, v in res.items()}
-        if len(copies) == 2:
-            out['models'][m] = {'first_s ratio, shared / per-block': round(
-                out['models'][f'{m} (shared copy)']['first_s']
-                / out['models'][f'{m} (per-block copy)']['first_s'], 3)}
+        if len(variants) == 2:
+            new, old = (out['models'][f'{m} ({v[2]})'] for v in variants)
+            names = ' / '.join(v[2].split()[0] for v in variants)
+            out['models'][m] = {f'{k} ratio, {names}': round(new[k] / old[k], 3)
+                                for k in ('first_s', 'cpu_s')}
     out['load_after'] = os.getloadavg()[0]
     print(json.dumps(out))
     return 0
 
 
-def _child(model: str, copy: str, cold: bool) -> dict | str:
+def _child(model: str, copy: str, probe: str, cold: bool) -> dict | str:
     """One model's first runs in a fresh process (:data:`CHILD`): its figures, or the last
     line of its error."""
     with tempfile.TemporaryDirectory(prefix='first_run_cache_') as cache:
         env = dict(os.environ, NUMBA_CACHE_DIR=cache) if cold else None
         t = time.perf_counter()
-        r = subprocess.run([sys.executable, '-c', CHILD, model, copy], capture_output=True,
+        r = subprocess.run([sys.executable, '-c', CHILD, model, copy, probe], capture_output=True,
                            text=True, env=env)
         if r.returncode != 0:
             return (r.stderr.strip().splitlines() or ['exit status %d' % r.returncode])[-1]

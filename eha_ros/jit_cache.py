@@ -28,8 +28,8 @@ import os
 from pathlib import Path
 import textwrap
 
-__all__ = ['fingerprint', 'drop_stale_cache', 'share_inline_copies', 'CACHE_SUFFIXES',
-           'STAMP_NAME']
+__all__ = ['fingerprint', 'drop_stale_cache', 'share_inline_copies', 'defer_blas_probe',
+           'CACHE_SUFFIXES', 'STAMP_NAME']
 
 #: numba's cache files: the index and the compiled data of each function.
 CACHE_SUFFIXES = ('.nbi', '.nbc')
@@ -148,4 +148,57 @@ def share_inline_copies() -> bool:
     inline_ir.__qualname__ = worker.inline_ir.__qualname__
     inline_ir.shared_copy = True
     worker.inline_ir = inline_ir
+    return True
+
+
+def _blas_files_present() -> None:
+    """numba's BLAS probe, by the files: raises ``ImportError`` (as numba's ``ensure_blas``
+    does) unless scipy's ``linalg/cython_blas`` extension is installed, without importing
+    it."""
+    import importlib.util
+    spec = importlib.util.find_spec('scipy')
+    folders = (spec.submodule_search_locations or []) if spec else []
+    if not any(any(Path(d, 'linalg').glob('cython_blas*')) for d in folders):
+        raise ImportError('scipy 0.16+ is required for linear algebra')
+
+
+def defer_blas_probe() -> bool:
+    """Make numba's import-time BLAS probe look for scipy's BLAS module instead of importing
+    it; returns whether that probe is in force.
+
+    Why: numba's CPU target, at the first compile or cache load of a process, imports
+    ``numba.np.arraymath``, which probes for BLAS by importing ``scipy.linalg`` (0.2-0.5 s of
+    CPU here: most of a node's first kernel load).  The answer only chooses how
+    ``np.convolve`` and ``np.correlate`` are compiled; the file gives the same answer.  Every
+    later ``ensure_blas`` (a kernel that calls BLAS, at its compile) is numba's own: it
+    imports ``scipy.linalg`` and checks its integer width as before.  Where numba's target
+    does not import ``arraymath`` as written for (another version), nothing changes.
+    """
+    import sys
+    from numba.core import cpu
+    original = cpu.CPUContext.load_additional_registries
+    if getattr(original, 'deferred_blas_probe', False):
+        return True
+    try:
+        if 'arraymath' not in inspect.getsource(original):
+            return False
+    except (OSError, TypeError):  # no source to read (a frozen or stripped install)
+        return False
+
+    def load_additional_registries(self):
+        if 'numba.np.arraymath' in sys.modules:  # probed already, in this process
+            return original(self)
+        from numba.np import linalg
+        ensure_blas = linalg.ensure_blas
+        linalg.ensure_blas = _blas_files_present  # what arraymath's import binds and calls
+        try:
+            return original(self)
+        finally:
+            linalg.ensure_blas = ensure_blas
+            arraymath = sys.modules.get('numba.np.arraymath')
+            if getattr(arraymath, 'ensure_blas', None) is _blas_files_present:
+                arraymath.ensure_blas = ensure_blas
+
+    load_additional_registries.deferred_blas_probe = True
+    cpu.CPUContext.load_additional_registries = load_additional_registries
     return True

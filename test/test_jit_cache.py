@@ -193,3 +193,43 @@ def test_the_shared_copy_replaces_only_the_code_it_was_written_for():
     assert 'kernel_copy.blocks = copy.deepcopy(the_ir.blocks)' in new
     assert 'new_block = copy.deepcopy' not in new
     assert patched.__code__.co_firstlineno == first
+
+
+_BLAS_PROCESS = '''
+import sys
+import numpy as np
+from numba import njit
+from eha_ros.physics import default_params, simulate
+from eha_ros.jit_cache import defer_blas_probe
+simulate(default_params(), 'step_0p1', duration_s=0.002, controller_period_s=1e-3,
+         record_dt_s=None)
+import numba.np.arraymath as arraymath
+from numba.np import linalg
+print(defer_blas_probe(), 'scipy.linalg' in sys.modules, arraymath._HAVE_BLAS,
+      arraymath.ensure_blas is linalg.ensure_blas)
+linalg.ensure_blas()   # numba's own probe: the same answer
+dot = njit(lambda a, b: np.dot(a, b))   # a kernel calling BLAS: numba's own check at compile
+print(dot(np.arange(3.0), np.arange(3.0)), 'scipy.linalg' in sys.modules)
+'''
+
+
+def test_a_kernel_loads_without_scipy_linalg_and_blas_still_works():
+    """A fresh process runs the plant without importing scipy.linalg (numba's import-time
+    probe looks for the file); the probe's answer is numba's own, and a kernel that calls
+    BLAS compiles and runs, numba then importing scipy.linalg as it always did."""
+    out = subprocess.run([sys.executable, '-c', _BLAS_PROCESS], capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split('\n')[:2] == ['True False True True', '5.0 True']
+
+
+def test_the_blas_probe_refuses_where_scipy_has_no_blas(monkeypatch):
+    import importlib.util
+
+    import pytest
+
+    from eha_ros.jit_cache import _blas_files_present
+    _blas_files_present()   # installed here
+    monkeypatch.setattr(importlib.util, 'find_spec', lambda name: None)
+    with pytest.raises(ImportError, match='scipy 0.16'):
+        _blas_files_present()

@@ -8,9 +8,10 @@ characteristic maps in :mod:`.maps`; parameters in :mod:`.params`; parameter cha
 run in :mod:`.events`.  Nothing here imports rclpy or torch.
 """
 
-from eha_ros.jit_cache import share_inline_copies
+from eha_ros.jit_cache import defer_blas_probe, share_inline_copies
 
 share_inline_copies()  # before any kernel compiles: a third of numba's compile time
+defer_blas_probe()  # before the first kernel loads: numba's probe imported scipy.linalg
 
 # (the imports below follow it: E402)
 from .commands import Scenario, get_scenario, load_scenarios  # noqa: E402
