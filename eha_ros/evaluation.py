@@ -37,6 +37,8 @@ Cost: wall seconds per simulated second of every run against hf's.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from eha_ros.graph import DYNAMIC_MODELS
@@ -130,6 +132,20 @@ def _cost(r) -> float:
     return r.wall_time_s / float(r.t[-1])
 
 
+def model_result(jack, p12, meets, f, f_ref, spread, cost) -> dict:
+    """One model's entry of :func:`noise_free`'s ``models``: its errors ``jack`` and ``p12``,
+    whether they ``meets`` the bounds, its features ``f`` and their deviation from hf's
+    ``f_ref`` against the yardstick's ``spread`` (within it, within twice it) and its
+    ``cost`` [wall s per simulated s]."""
+    dev = {k: abs(f[k] - f_ref[k]) for k in f}
+    return {'jack': jack, 'p12': p12, 'meets': meets, 'features': f,
+            'feature_deviation': dev,
+            'features_within_spread': {k: bool(dev[k] <= spread[k] * (1 + 1e-9)) for k in dev},
+            'features_within_2x_spread': {k: bool(dev[k] <= 2 * spread[k] + 1e-30)
+                                          for k in dev},
+            'cost_s_per_s': cost}
+
+
 def noise_free(p, scenario, surrogates, large_dts=(), keep_runs=False, split_dts=()):
     """One case: hf, the yardstick runs and every surrogate (``{name: surrogate}``), at the
     parameters ``p`` (noise should be off); hf and the dynamic surrogates also at each step of
@@ -170,18 +186,9 @@ def noise_free(p, scenario, surrogates, large_dts=(), keep_runs=False, split_dts
                 continue
             kept[key] = r
             e = _errors(r, ref)
-            f = features(r)
-            dev = {k: abs(f[k] - f_ref[k]) for k in f}
-            out['models'][key] = {
-                'jack': e['jack'], 'p12': e['p12'],
-                'meets': bool(e['jack'] <= out['bound']['jack']
-                              and e['p12'] <= out['bound']['p12']),
-                'features': f, 'feature_deviation': dev,
-                'features_within_spread': {k: bool(dev[k] <= spread[k] * (1 + 1e-9))
-                                           for k in dev},
-                'features_within_2x_spread': {k: bool(dev[k] <= 2 * spread[k] + 1e-30)
-                                              for k in dev},
-                'cost_s_per_s': _cost(r)}
+            meets = bool(e['jack'] <= out['bound']['jack'] and e['p12'] <= out['bound']['p12'])
+            out['models'][key] = model_result(e['jack'], e['p12'], meets, features(r), f_ref,
+                                              spread, _cost(r))
     if keep_runs:
         out['runs'] = kept
     return out
@@ -240,12 +247,9 @@ def largest_steps(summary) -> dict:
         if name == 'hf':
             rows = {DT_S: {'cases_meeting_bounds': 1, 'cases': 1, 'median_cost_vs_hf': 1.0},
                     **rows}
-        best = None
-        for dt in sorted(rows):
-            r = rows[dt]
-            if r['cases_meeting_bounds'] != r['cases']:
-                break
-            best = dt
+        met = list(itertools.takewhile(
+            lambda dt: rows[dt]['cases_meeting_bounds'] == rows[dt]['cases'], sorted(rows)))
+        best = met[-1] if met else None
         out[name] = {'steps_tried_s': sorted(rows),
                      'largest_step_s': best,
                      'median_cost_vs_hf_at_it': (None if best is None
@@ -261,23 +265,18 @@ def summarise(result) -> dict:
     for m in keys:
         cases = [(name, c, c['models'][m]) for name, c in result['noise_free'].items()
                  if m in c['models']]
-        ok = [r for _, _, r in cases if 'error' not in r]
+        ok = [(c, r) for _, c, r in cases if 'error' not in r]
         failed = [name for name, _, r in cases if 'error' in r or not r['meets']]
-        feat = [all(r['features_within_2x_spread'].values()) for r in ok]
-        feat1 = [all(r['features_within_spread'].values()) for r in ok]
+        feat = [all(r['features_within_2x_spread'].values()) for _, r in ok]
+        feat1 = [all(r['features_within_spread'].values()) for _, r in ok]
         row = {'cases': len(cases), 'cases_meeting_bounds': len(cases) - len(failed),
                'cases_failing': failed,
-               'worst_jack_over_bound': max((r['jack'] / c['bound']['jack']
-                                            for _, c, r in cases if 'error' not in r),
-                                            default=None),
-               'worst_p12_over_bound': max((r['p12'] / c['bound']['p12']
-                                           for _, c, r in cases if 'error' not in r),
-                                           default=None),
+               **{f'worst_{q}_over_bound': max((r[q] / c['bound'][q] for c, r in ok),
+                                               default=None) for q in ('jack', 'p12')},
                'cases_all_features_within_spread': int(sum(feat1)),
                'cases_all_features_within_2x_spread': int(sum(feat)),
                'median_cost_vs_hf': float(np.median([r['cost_s_per_s'] / c['hf_cost_s_per_s']
-                                                     for _, c, r in cases
-                                                     if 'error' not in r])) if ok else None}
+                                                     for c, r in ok])) if ok else None}
         noise = [(sc, c['models'][m]) for sc, c in result['noise'].items() if m in c['models']]
         if noise:
             row['noise_scenarios_meeting'] = sum(1 for _, r in noise if r.get('meets'))

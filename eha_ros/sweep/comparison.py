@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eha_ros.evaluation import mean_sem
+from eha_ros.evaluation import mean_sem, model_result
 
 from .engine import cluster
 
@@ -61,10 +61,6 @@ def noise_spec(scenarios, models, seeds: int) -> dict:
             'seeds': int(seeds), 'compare': 'yardstick'}
 
 
-def _rows(table) -> list:
-    return table.to_pylist()
-
-
 def _wear_name(row, wear_points, base) -> str:
     for name, w in wear_points.items():
         if all(row[k] == v for k, v in wear_inputs(w, base).items()):
@@ -81,7 +77,7 @@ def noise_free_results(table, wear_points: dict, keep_signals: bool = False) -> 
     base = default_params()
     feats = [f for f, _ in FEATURES]
     points = {}
-    for r in _rows(table):
+    for r in table.to_pylist():
         points.setdefault(r['point_id'], []).append(r)
     out = {}
     for rows in points.values():
@@ -107,16 +103,9 @@ def noise_free_results(table, wear_points: dict, keep_signals: bool = False) -> 
             if r['status'] != 'ok':
                 res['models'][name] = {'error': r['error']}
                 continue
-            f = {k: r[k] for k in feats}
-            dev = {k: abs(f[k] - f_ref[k]) for k in f}
-            res['models'][name] = {
-                'jack': r['jack_rel_error'], 'p12': r['p12_rel_error'],
-                'meets': r['meets_bounds'], 'features': f, 'feature_deviation': dev,
-                'features_within_spread': {k: bool(dev[k] <= spread[k] * (1 + 1e-9))
-                                           for k in dev},
-                'features_within_2x_spread': {k: bool(dev[k] <= 2 * spread[k] + 1e-30)
-                                              for k in dev},
-                'cost_s_per_s': r['wall_cost_s_per_s']}
+            res['models'][name] = model_result(
+                r['jack_rel_error'], r['p12_rel_error'], r['meets_bounds'],
+                {k: r[k] for k in feats}, f_ref, spread, r['wall_cost_s_per_s'])
             if keep_signals and '@' not in name:
                 res['signals'][name] = _signals(r)
         out[key] = res
@@ -130,7 +119,7 @@ def _signals(row) -> dict:
 
 def noise_results(table, models) -> dict:
     """``{scenario: result}`` with each result as :func:`evaluation.with_noise` returns it."""
-    rows = _rows(table)
+    rows = table.to_pylist()
     out = {}
     for sc in dict.fromkeys(r['scenario'] for r in rows):
         mine = [r for r in rows if r['scenario'] == sc]
