@@ -26,9 +26,13 @@ from pathlib import Path
 from .errors import SweepError
 
 __all__ = ['SweepError', 'schema', 'write_batch', 'done_case_ids', 'read_dataset',
-           'TIMING_COLUMNS', 'SPEC_FILE']
+           'FIXED_COLUMNS', 'TIMING_COLUMNS', 'SPEC_FILE']
 
 SPEC_FILE = '_spec.yaml'
+#: The sweep's own columns ahead of a procedure's, and their types (:func:`schema`).
+FIXED_COLUMNS = (('case_id', 'string'), ('point_id', 'string'), ('status', 'string'),
+                 ('error', 'string'), ('procedure', 'string'), ('scenario', 'string'),
+                 ('model', 'string'), ('dt_s', 'float'), ('seed', 'int'), ('noise', 'bool'))
 #: Columns that depend on where and how fast a case ran (left out of determinism checks).
 TIMING_COLUMNS = ('wall_s', 'wall_point_s', 'wall_cost_s_per_s', 'worker')
 
@@ -41,14 +45,8 @@ def schema(columns):
     import pyarrow as pa
     types = {'float': pa.float64(), 'int': pa.int64(), 'bool': pa.bool_(),
              'string': pa.string(), 'floats': pa.list_(pa.float64())}
-    fields = [('case_id', pa.string()), ('point_id', pa.string()), ('status', pa.string()),
-              ('error', pa.string()), ('procedure', pa.string()), ('scenario', pa.string()),
-              ('model', pa.string()), ('dt_s', pa.float64()), ('seed', pa.int64()),
-              ('noise', pa.bool_())]
-    fields += [(n, types[t]) for n, t in columns]
-    fields += [('wall_s', pa.float64()), ('wall_point_s', pa.float64()),
-               ('wall_cost_s_per_s', pa.float64()), ('worker', pa.string())]
-    return pa.schema(fields)
+    timing = [(n, 'string' if n == 'worker' else 'float') for n in TIMING_COLUMNS]
+    return pa.schema([(n, types[t]) for n, t in (*FIXED_COLUMNS, *columns, *timing)])
 
 
 def write_batch(folder: Path, rows: list, sch, first_index: int) -> Path:

@@ -24,6 +24,7 @@ in the folder.
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import math
 import os
 import signal
@@ -195,12 +196,6 @@ def _prepare_folder(out: Path, spec: Spec, resume: bool) -> None:
     os.replace(tmp, spec_path)
 
 
-def _has_bokeh() -> bool:
-    """Whether Dask's dashboard can be served (it needs bokeh, not installed by default)."""
-    import importlib.util
-    return importlib.util.find_spec('bokeh') is not None
-
-
 def _client(workers: int, scheduler: str | None):
     """``(client, cluster or None)``: connected to ``scheduler``, or to a LocalCluster of
     ``workers`` single-threaded processes started here."""
@@ -290,7 +285,7 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
         elif batches:
             with (cluster(workers, scheduler) if client is None
                   else contextlib.nullcontext(client)) as dask:
-                if _has_bokeh():
+                if importlib.util.find_spec('bokeh') is not None:  # the dashboard needs it
                     print(f'eha-sweep: dashboard {dask.dashboard_link}', file=sys.stderr,
                           flush=True)
                 if warm:
@@ -298,15 +293,14 @@ def run_sweep(spec: Spec, out, workers: int | None = None, scheduler: str | None
                 _run_dask(dask, raw, base, batches, finished)
     except BaseException as exc:
         summary['interrupted'] = True
-        summary['batches'] = batches.batches
-        summary['wall_s'] = round(time.monotonic() - t0, 3)
         if bar is not None and bar.tty:
             print(file=bar.stream)
         if isinstance(exc, KeyboardInterrupt):
             raise SweepInterrupted(summary) from None
         raise
-    summary['batches'] = batches.batches
-    summary['wall_s'] = round(time.monotonic() - t0, 3)
+    finally:
+        summary['batches'] = batches.batches
+        summary['wall_s'] = round(time.monotonic() - t0, 3)
     summary['files'] = len(parts(out))
     return summary
 
@@ -363,13 +357,9 @@ def cluster(workers: int | None = None, scheduler: str | None = None):
 
 
 def _close(client, cluster) -> None:
-    if client is not None:
-        try:
-            client.close(timeout=10)
-        except Exception:  # closing is best effort: the results are on disk
-            pass
-    if cluster is not None:
-        try:
-            cluster.close(timeout=10)
-        except Exception:
-            pass
+    for what in (client, cluster):
+        if what is not None:
+            try:
+                what.close(timeout=10)
+            except Exception:  # closing is best effort: the results are on disk
+                pass

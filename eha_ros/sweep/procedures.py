@@ -89,8 +89,7 @@ class ScenarioProcedure(Procedure):
         except ParameterError as exc:
             return [self._row(c, {}, *status_of(exc)) for c in point.cases]
         need_ref = any(c.model != 'hf' for c in point.cases)
-        order = sorted(point.cases, key=lambda c: c.model != 'hf')
-        for c in order:
+        for c in sorted(point.cases, key=lambda c: c.model != 'hf'):  # hf first: the reference
             t = time.perf_counter()
             try:
                 if c.model == 'hf' and c.dt_s == self.spec.dt_s and ref is not None:
@@ -121,17 +120,14 @@ class ScenarioProcedure(Procedure):
 
     def warm_up(self) -> None:
         p = self.spec.point_params({})
-        for m in self.spec.models:
-            simulate(p, self.spec.scenarios[0], duration_s=0.01, dt_s=self.spec.dt_s,
-                     controller_period_s=CONTROLLER_PERIOD_S, record_dt_s=None,
-                     fluid=self.model(m), integrator=self.spec.integrator)
+        runs = [(m, self.spec.dt_s, self.spec.integrator) for m in self.spec.models]
         if self.spec.split_dts:  # the split kernel compiles apart
-            dt = self.spec.split_dts[0]
-            for m in ('hf',) + self.spec.models:
-                if m == 'hf' or m in DYNAMIC_MODELS:
-                    simulate(p, self.spec.scenarios[0], duration_s=0.01, dt_s=dt,
-                             controller_period_s=CONTROLLER_PERIOD_S, record_dt_s=None,
-                             fluid=self.model(m), integrator='split')
+            runs += [(m, self.spec.split_dts[0], 'split') for m in ('hf',) + self.spec.models
+                     if m == 'hf' or m in DYNAMIC_MODELS]
+        for m, dt, integrator in runs:
+            simulate(p, self.spec.scenarios[0], duration_s=0.01, dt_s=dt,
+                     controller_period_s=CONTROLLER_PERIOD_S, record_dt_s=None,
+                     fluid=self.model(m), integrator=integrator)
 
     def _row(self, case, metrics, status, error=None, signals=None) -> dict:
         return {'case_id': case.case_id, 'model': case.model, 'dt_s': case.dt_s,

@@ -16,12 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import TIMING_COLUMNS, read_dataset
+from .dataset import FIXED_COLUMNS, TIMING_COLUMNS, read_dataset
 
 __all__ = ['load', 'summary_table', 'plot_heatmap', 'plot_spread', 'report']
 
-_FIXED = ('case_id', 'point_id', 'status', 'error', 'procedure', 'scenario', 'model', 'dt_s',
-          'seed', 'noise')
+_FIXED = tuple(n for n, _ in FIXED_COLUMNS)
 #: Default metric, the first of these with values.
 _DEFAULT_METRICS = ('jack_rel_error', 'rms_tracking_error_m', 'est_radial_clearance_m',
                     'est_demagnetisation')
@@ -50,10 +49,9 @@ def _numeric(v) -> np.ndarray:
 
 def summary_table(cols, metrics) -> str:
     """Markdown table: per model, cases by status, each metric's median [min, max]."""
-    models = list(dict.fromkeys(cols['model'].tolist()))
     head = ['model', 'cases', 'ok', 'diverged', 'error'] + list(metrics)
     lines = ['| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
-    for m in models:
+    for m in dict.fromkeys(cols['model'].tolist()):
         sel = cols['model'] == m
         st = cols['status'][sel]
         ok = sel & (cols['status'] == 'ok')
@@ -65,10 +63,6 @@ def summary_table(cols, metrics) -> str:
             cells.append(f'{np.median(v):.4g} [{v.min():.3g}, {v.max():.3g}]' if v.size else '-')
         lines.append('| ' + ' | '.join(cells) + ' |')
     return '\n'.join(lines)
-
-
-def _swept(cols, inputs) -> list:
-    return [n for n in inputs if len(set(cols[n].tolist())) > 1]
 
 
 def plot_heatmap(cols, metric, x, y, path: Path) -> Path:
@@ -125,9 +119,8 @@ def plot_spread(cols, metric, x, path: Path) -> Path:
         ux = np.unique(xs[sel])
         if not ux.size:
             continue
-        mean = np.array([v[sel & (xs == u)].mean() for u in ux])
-        lo = np.array([v[sel & (xs == u)].min() for u in ux])
-        hi = np.array([v[sel & (xs == u)].max() for u in ux])
+        groups = [v[sel & (xs == u)] for u in ux]
+        mean, lo, hi = (np.array([f(g) for g in groups]) for f in (np.mean, np.min, np.max))
         line, = ax.plot(ux, mean, 'o-', ms=3, label=f'{m} (mean)')
         ax.fill_between(ux, lo, hi, color=line.get_color(), alpha=0.2)
     ax.set_xlabel(x)
@@ -154,7 +147,7 @@ def report(folder, metric: str | None = None, x: str | None = None, y: str | Non
         if name is not None and name not in inputs:
             raise ValueError(f'{name!r} is not a swept parameter of this sweep (one of '
                              f'{", ".join(inputs) or "none"})')
-    swept = _swept(cols, inputs)
+    swept = [n for n in inputs if len(set(cols[n].tolist())) > 1]
     x = x or (swept[0] if swept else None)
     y = y or next((n for n in swept if n != x), None)
     out = Path(plots) if plots is not None else Path(folder) / '_report'

@@ -169,13 +169,9 @@ class Spec:
     @property
     def input_names(self) -> tuple:
         """The plant names a row carries as inputs, in a fixed order."""
-        names = list(self.grid)
-        if self.random:
-            names += [n for n in self.random['ranges'] if n not in names]
-        for c in self.cases:
-            names += [n for n in c if n != 'seed' and n not in names]
-        names += [n for n in self.tie if n not in names]
-        return tuple(names)
+        names = [*self.grid, *(self.random['ranges'] if self.random else ()),
+                 *(n for c in self.cases for n in c if n != 'seed'), *self.tie]
+        return tuple(dict.fromkeys(names))
 
     def point_params(self, inputs: dict):
         """The plant parameters of a point: the nominal ones with ``inputs`` (and the noise
@@ -200,21 +196,16 @@ class Spec:
                 draws.append({n: float(rng.uniform(*r['ranges'][n])) for n in names})
         out = [({**g, **d}, None) for g in grid for d in draws] if (self.grid or self.random) \
             else []
-        for c in self.cases:
-            out.append(({k: v for k, v in c.items() if k != 'seed'}, c.get('seed')))
-        if not out:
-            out = [({}, None)]
-        return out
+        out += [({k: v for k, v in c.items() if k != 'seed'}, c.get('seed')) for c in self.cases]
+        return out or [({}, None)]
 
     def case_models(self) -> list:
         """``(model, dt_s)`` of the cases at a point."""
         out = [(m, self.dt_s) for m in self.models]
-        if self.compare == 'yardstick' and self.large_dts:
-            out += [(m, dt) for dt in self.large_dts for m in ('hf',) + self.models
-                    if m == 'hf' or m in DYNAMIC_MODELS]
-        if self.compare == 'yardstick' and self.split_dts:
-            out += [(f'{m}@{SPLIT}', dt) for dt in self.split_dts
-                    for m in ('hf',) + self.models if m == 'hf' or m in DYNAMIC_MODELS]
+        if self.compare == 'yardstick':
+            for suffix, dts in (('', self.large_dts), (f'@{SPLIT}', self.split_dts)):
+                out += [(m + suffix, dt) for dt in dts for m in ('hf',) + self.models
+                        if m == 'hf' or m in DYNAMIC_MODELS]
         return list(dict.fromkeys(out))
 
     def points(self) -> list:
@@ -514,18 +505,15 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
     spec = Spec(procedure, scenarios, tuple(models), seeds, noise, grid, random, dict(tie),
                 tuple(cases), compare, large_dts, dt_s, tuple(signals), signal_dt_s, metrics,
                 flows, dict(raw), valve_test_procedure=vtp, pressure_noise=float(pnoise),
-                split_dts=split_dts, integrator=integrator)
-    if base is None:
-        base = params_to_dict(default_params())
-    spec.base = dict(base)
-    spec.source = where
+                split_dts=split_dts, integrator=integrator, source=where,
+                base=dict(params_to_dict(default_params()) if base is None else base))
     spec.proc = kind(spec)
     if check:
-        _check_size(spec, where, max_cases)
+        n = count_cases(spec)
+        if n > max_cases:
+            raise SpecError(f'{where}: {n} cases exceed --max-cases {max_cases}')
         try:
             spec.proc.check(where)
-        except SpecError:
-            raise
         except ValueError as exc:   # the procedure's one line, naming the spec
             raise SpecError(str(exc)) from None
     return spec
@@ -542,9 +530,3 @@ def count_cases(spec: Spec) -> int:
     if not (spec.grid or spec.random or spec.cases):   # the nominal point, at every seed
         n_points = len(spec.seeds)
     return n_points * len(spec.case_models()) * len(spec.scenarios)
-
-
-def _check_size(spec: Spec, where: str, max_cases: int) -> None:
-    n = count_cases(spec)
-    if n > max_cases:
-        raise SpecError(f'{where}: {n} cases exceed --max-cases {max_cases}')
