@@ -138,13 +138,9 @@ class Scenario:
     def arrays(self):
         """(kind, args, com_t, com_v) as :func:`command_value` takes them."""
         args = np.zeros(N_ARGS)
-        args[A_AMP] = self.amplitude_m
-        args[A_T0] = self.start_s
-        args[A_W] = self.frequency_rad_s
-        args[A_TRAMP] = self.ramp_time_s
-        args[A_F0] = self.f0_hz
-        args[A_F1] = self.f1_hz
-        args[A_TSWEEP] = self.sweep_time_s
+        args[[A_AMP, A_T0, A_W, A_TRAMP, A_F0, A_F1, A_TSWEEP]] = (
+            self.amplitude_m, self.start_s, self.frequency_rad_s, self.ramp_time_s, self.f0_hz,
+            self.f1_hz, self.sweep_time_s)
         com_t = np.asarray(self.com_times_s if self.waveform == 'com' else (), dtype=float)
         com_v = np.asarray(self.com_values_m if self.waveform == 'com' else (), dtype=float)
         return WAVEFORMS.index(self.waveform), args, com_t, com_v
@@ -195,10 +191,9 @@ def _parse_scenarios(path: Path) -> dict[str, Scenario]:
                 except (TypeError, ValueError):
                     raise ParameterError(f'{path}: scenario {name}: {key} must be a list of '
                                          'numbers') from None
-        if 'preflight_check' in kw:
-            if not isinstance(kw['preflight_check'], bool):
-                raise ParameterError(f'{path}: scenario {name}: preflight_check must be true or '
-                                     'false')
+        if not isinstance(kw.get('preflight_check', False), bool):
+            raise ParameterError(f'{path}: scenario {name}: preflight_check must be true or '
+                                 'false')
         for key, value in list(kw.items()):
             if key not in ('waveform', 'description', 'preflight_check', 'events',
                            'valve_test_procedure') + _TUPLES:

@@ -16,6 +16,7 @@ stored in :class:`PlantParams` as the index of that string.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -41,8 +42,6 @@ class ParameterError(ValueError):
 
 CD_MODELS = ('reynolds', 'constant')
 TORQUE_MOTOR_MODELS = ('fixed', 'magnetic')
-
-_INF = math.inf
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,12 +74,12 @@ class ParamSpec:
                 f'must lie in {lb}{self.lo:g}, {self.hi:g}{rb} ({self.meaning})')
 
 
-def _pos(name, unit, meaning, hi=_INF):
+def _pos(name, unit, meaning, hi=math.inf):
     return ParamSpec(name, unit, 0.0, hi, meaning, lo_open=True)
 
 
-def _nonneg(name, unit, meaning, hi=_INF):
-    return ParamSpec(name, unit, 0.0, hi, meaning)
+def _nonneg(name, unit, meaning):
+    return ParamSpec(name, unit, 0.0, math.inf, meaning)
 
 
 def _frac(name, meaning, hi_open=False):
@@ -200,11 +199,10 @@ def _coerce(spec: ParamSpec, raw, source: str) -> float:
     if isinstance(raw, bool) or raw is None:
         raise ParameterError(f'{source}: parameter {spec.name} = {raw!r} is not a number')
     try:
-        value = float(raw)
+        return float(raw)
     except (TypeError, ValueError):
         raise ParameterError(f'{source}: parameter {spec.name} = {raw!r} is not a number'
                              ) from None
-    return value
 
 
 def _cross_check(p: PlantParams) -> None:
@@ -241,9 +239,7 @@ def params_from_mapping(values: Mapping[str, object], source: str = 'parameters'
                              'fluid_temperature_k and fluid_condition_factor by the fluid '
                              'law (config/fluid.yaml)')
     out = {}
-    for spec in SPECS:
-        if spec.name in DERIVED:
-            continue
+    for spec in (SPEC_BY_NAME[n] for n in SETTABLE):
         if spec.name not in values:
             raise ParameterError(f'{source}: missing parameter {spec.name} [{spec.unit}]')
         value = _coerce(spec, values[spec.name], source)
@@ -271,20 +267,14 @@ def params_from_mapping(values: Mapping[str, object], source: str = 'parameters'
 
 def replace(p: PlantParams, **changes) -> PlantParams:
     """Return ``p`` with some fields changed, validated again (mode names accepted)."""
-    d = params_to_dict(p)
-    d.update(changes)
-    return params_from_mapping(d, source='parameter override')
+    return params_from_mapping({**params_to_dict(p), **changes}, source='parameter override')
 
 
 def params_to_dict(p: PlantParams, derived: bool = False) -> dict:
     """``name -> value`` of the settable parameters, mode parameters as their names (inverse
     of :func:`params_from_mapping`); ``derived``: the :data:`DERIVED` fields too."""
-    d = {}
-    for spec, value in zip(SPECS, p):
-        if spec.name in DERIVED and not derived:
-            continue
-        d[spec.name] = spec.choices[int(value)] if spec.choices else float(value)
-    return d
+    return {spec.name: spec.choices[int(value)] if spec.choices else float(value)
+            for spec, value in zip(SPECS, p) if derived or spec.name not in DERIVED}
 
 
 def config_dir() -> Path:
@@ -299,10 +289,7 @@ def config_dir() -> Path:
     import sys
     candidates = [Path(sys.prefix) / 'share' / 'eha_ros' / 'config',
                   Path(__file__).resolve().parents[2] / 'config']
-    for c in candidates:
-        if (c / 'eha_params.yaml').is_file():
-            return c
-    return candidates[-1]
+    return next((c for c in candidates if (c / 'eha_params.yaml').is_file()), candidates[-1])
 
 
 def fluid_law(path=None) -> FluidLaw:
@@ -359,15 +346,10 @@ def load_params(path: Path | str | None = None, **overrides) -> PlantParams:
     return params_from_mapping(values, source=str(path))
 
 
-_DEFAULT = None
-
-
+@functools.cache
 def default_params() -> PlantParams:
     """The nominal parameters of ``config/eha_params.yaml`` (loaded once)."""
-    global _DEFAULT
-    if _DEFAULT is None:
-        _DEFAULT = load_params()
-    return _DEFAULT
+    return load_params()
 
 
 def params_hash(p: PlantParams, names=None) -> str:

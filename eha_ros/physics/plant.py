@@ -260,8 +260,6 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     n_ticks = int(round(duration / period))
     rec_every = 1 if record_dt_s is None else max(1, int(round(record_dt_s / period)))
     # the run in segments of constant parameters: tick -> (parameters, kernels) from it on
-    if isinstance(events, EventSchedule):
-        events = list(events)
     schedule = EventSchedule([(t, dict(changes)) for t, _, changes in sc.events]
                              + list(events or ()), period_ns=steps_per_tick * dt_ns)
     segments = {0: (p, kernels)}

@@ -90,9 +90,8 @@ def _load(path: str) -> dict:
         reason = str(e.get('reason') or '').strip()
         if not reason:
             raise ParameterError(f'{where}: no reason')
-        has_range = 'lo' in e or 'hi' in e
         if klass not in DRAWN:
-            if has_range:
+            if 'lo' in e or 'hi' in e:
                 raise ParameterError(f'{where}: a {klass} parameter has no range')
             out[spec.name] = Tolerance(spec.name, klass, reason)
             continue
@@ -169,8 +168,7 @@ def error_shares(errors, units, top: int = 6, tolerances: dict | None = None) ->
     names = sorted({k for u in units for k in u if k in SPEC_BY_NAME and k != 'seed'})
     cols, kept = [], []
     for name in names:
-        t = tol.get(name)
-        ref = t.ratio_of if t is not None and t.ratio_of else None
+        ref = getattr(tol.get(name), 'ratio_of', None)
         v = np.array([u.get(name, np.nan) / (u.get(ref, np.nan) if ref else 1.0)
                       for u in units], dtype=float)
         if np.all(np.isfinite(v)) and np.std(v) > 1e-12 * (1.0 + np.abs(np.mean(v))):
