@@ -39,12 +39,9 @@ STAMP_NAME = 'numba_sources.txt'
 
 def fingerprint(package_dir: Path) -> str:
     """One line per ``.py`` file below ``package_dir``: relative path, size, mtime [ns]."""
-    rows = []
-    for path in sorted(package_dir.rglob('*.py')):
-        st = path.stat()
-        rows.append(f'{path.relative_to(package_dir).as_posix()} {st.st_size} '
-                    f'{st.st_mtime_ns}')
-    return '\n'.join(rows) + '\n'
+    rows = [(path, path.stat()) for path in sorted(package_dir.rglob('*.py'))]
+    return '\n'.join(f'{path.relative_to(package_dir).as_posix()} {st.st_size} '
+                     f'{st.st_mtime_ns}' for path, st in rows) + '\n'
 
 
 def _cache_files(package_dir: Path):
