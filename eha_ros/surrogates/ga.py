@@ -98,9 +98,6 @@ def ga_kernel(data, xs_m, q_m3_s, overlap_m, clearance_m):
     return ga_p12(data[0], x / n[0], q / n[1])
 
 
-# The plant's loop and the loop over points with :func:`ga_kernel` a global, not an argument: so
-# these forms are cached on disk (:class:`.base.Forms`).
-
 @njit(cache=True)
 def _run_ga(s, i_cmd, p, clock, loop, data):
     return advance(s, i_cmd, p, clock, loop, ga_kernel, None, data, False)
@@ -117,7 +114,7 @@ def _points_ga(data, xs, q, lap, clr, out):
         out[i] = ga_kernel(data, xs[i], q[i], lap[i], clr[i])
 
 
-#: The compiled forms of :func:`ga_kernel`.
+#: The compiled forms of :func:`ga_kernel`, cached on disk (:class:`.base.Forms`).
 GA_FORMS = Forms(_run_ga, _run_split_ga, _points_ga)
 
 

@@ -122,9 +122,6 @@ def lut_kernel(data, xs_m, q_m3_s, overlap_m, clearance_m):
     return acc
 
 
-# The plant's loop and the loop over points with :func:`lut_kernel` a global, not an argument: so
-# these forms are cached on disk (:class:`.base.Forms`).
-
 @njit(cache=True)
 def _run_lut(s, i_cmd, p, clock, loop, data):
     return advance(s, i_cmd, p, clock, loop, lut_kernel, None, data, False)
@@ -141,7 +138,7 @@ def _points_lut(data, xs, q, lap, clr, out):
         out[i] = lut_kernel(data, xs[i], q[i], lap[i], clr[i])
 
 
-#: The compiled forms of :func:`lut_kernel`.
+#: The compiled forms of :func:`lut_kernel`, cached on disk (:class:`.base.Forms`).
 LUT_FORMS = Forms(_run_lut, _run_split_lut, _points_lut)
 
 

@@ -135,9 +135,6 @@ def mlp_kernel(data, xs_m, q_m3_s, overlap_m, clearance_m):
     return output[0] + output[1] * buf[a]
 
 
-# The plant's loop and the loop over points with :func:`mlp_kernel` a global, not an argument: so
-# these forms are cached on disk (:class:`.base.Forms`).
-
 @njit(cache=True)
 def _run_mlp(s, i_cmd, p, clock, loop, data):
     return advance(s, i_cmd, p, clock, loop, mlp_kernel, None, data, False)
@@ -154,7 +151,7 @@ def _points_mlp(data, xs, q, lap, clr, out):
         out[i] = mlp_kernel(data, xs[i], q[i], lap[i], clr[i])
 
 
-#: The compiled forms of :func:`mlp_kernel`.
+#: The compiled forms of :func:`mlp_kernel`, cached on disk (:class:`.base.Forms`).
 MLP_FORMS = Forms(_run_mlp, _run_split_mlp, _points_mlp)
 
 

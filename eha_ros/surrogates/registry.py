@@ -60,8 +60,8 @@ def load_surrogate(name: str, params: PlantParams | None = None,
         raise SurrogateError(f'unknown surrogate {name!r} (shipped: '
                              f'{", ".join(shipped_surrogates())})')
     known = KINDS.get(_SHIPPED_KINDS.get(name, name))  # what rebuilds it, should it not load
-    data, meta = load_artefact(path, known.rebuild if known else 'eha_ros.training.'
-                               '{lut,ga,nn,dynamic}', SurrogateError)
+    data, meta = load_artefact(path, known.rebuild if known else FluidSurrogate.rebuild,
+                               SurrogateError)
     kind = KINDS.get(meta.get('kind'))
     if kind is None:
         raise SurrogateError(f'{path}: unknown surrogate kind {meta.get("kind")!r} (one of '
