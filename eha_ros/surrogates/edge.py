@@ -201,12 +201,11 @@ class DynamicSurrogate(FluidSurrogate):
         return pressure, zero laps and the supply pressure set to ``dp`` per point."""
         p = params if params is not None else default_params()
         data = list(self.prepare(p))
-        idx = len(data) - 1  # every kind keeps [ps, pr, ...] last
-        data[idx] = data[idx].copy()
+        data[-1] = data[-1].copy()  # every kind keeps [ps, pr, ...] last
         s = np.ascontiguousarray(s_m, dtype=float).ravel()
         dp = np.ascontiguousarray(np.broadcast_to(np.asarray(dp_pa, dtype=float), s.shape))
         out = np.empty(s.size)
-        _edge_loop(self.kernel, tuple(data), data[idx], s, dp, out)
+        _edge_loop(self.kernel, tuple(data), data[-1], s, dp, out)
         return out
 
     def p12(self, *args, **kwargs):

@@ -147,7 +147,7 @@ class ScenarioProcedure(Procedure):
                   'yardstick_p12': out['yardstick']['p12'],
                   'bound_jack': out['bound']['jack'], 'bound_p12': out['bound']['p12'],
                   **{f'spread_{f}': v for f, v in out['feature_spread'].items()}}
-        duration = self._duration(point.scenario)
+        duration = float(get_scenario(point.scenario).duration_s)
         runs = out.get('runs', {})
         rows = []
         for c in point.cases:
@@ -186,10 +186,6 @@ class ScenarioProcedure(Procedure):
             out[f'signal_{name}_yardstick_hi'] = np.max(sig, axis=0)
         return out
 
-    @staticmethod
-    def _duration(scenario) -> float:
-        return float(get_scenario(scenario).duration_s)
-
     def _yardstick_noise(self, point) -> list:
         """hf at seed k, k + 1 and with Cd + 0.1 %; each model at seed k against hf at k."""
         sc, k = point.scenario, point.seed
@@ -225,9 +221,10 @@ class ScenarioProcedure(Procedure):
                     row['wall_s'] = time.perf_counter() - t
             rows.append(row)
         wall = time.perf_counter() - t0
+        duration = float(get_scenario(sc).duration_s)
         for row in rows:
             row['wall_point_s'] = wall
-            row['wall_cost_s_per_s'] = row['wall_s'] / self._duration(sc)
+            row['wall_cost_s_per_s'] = row['wall_s'] / duration
         return rows
 
 
