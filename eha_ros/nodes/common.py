@@ -3,11 +3,12 @@ timing report on ``/diagnostics`` and the ``main()`` boilerplate."""
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 import threading
 import time
-from contextlib import nullcontext
+from contextlib import nullcontext, suppress
 from typing import Callable, Iterable
 
 import numpy as np
@@ -116,14 +117,11 @@ def declare_physics(node: Node, params, names: Iterable[str]) -> dict:
     for name in names:
         spec = SPEC_BY_NAME[name]
         value = getattr(params, name)
+        text = f'{spec.meaning} [{spec.unit}]'
         if spec.choices:
-            out[name] = declare(node, name, spec.choices[int(value)],
-                                f'{spec.meaning} [{spec.unit}]', choices=spec.choices)
-        else:
-            lo = spec.lo if math.isfinite(spec.lo) else None
-            hi = spec.hi if math.isfinite(spec.hi) else None
-            out[name] = declare(node, name, float(value), f'{spec.meaning} [{spec.unit}]',
-                                lo if hi is not None else None, hi)
+            out[name] = declare(node, name, spec.choices[int(value)], text, choices=spec.choices)
+        else:  # a range only where both bounds are finite (declare)
+            out[name] = declare(node, name, float(value), text, spec.lo, spec.hi)
     return out
 
 
@@ -192,20 +190,24 @@ class TickTiming:
         self.realtime = realtime
         self.tolerance = tolerance
         self.window_s = window_s
-        self.ticks = self.late = self.slipped = self.overruns = self.resent = 0
-        self._due_ns = None  # own schedule (see on_schedule)
-        self._w_ticks = self._w_late = self._w_slipped = self._w_busy_ns = 0
-        self._intervals = []
-        self._last_ns = None
-        self._w_start = self._start_ns = time.monotonic_ns()
-        self._cpu0 = time.process_time_ns()
-        self._array = DiagnosticArray
-        self.startup = {}
+        self._reset(None, time.monotonic_ns())  # own schedule until start (see on_schedule)
         self.gc = None
-        self._jitter_hist = np.zeros(JITTER_BINS, np.int64)
         self.pub = advertise(node, DiagnosticArray, TOPIC_DIAGNOSTICS)
         self.timer = None
         self.lock = None  # a tick loop's lock (NodeLoop), taken to read and restart the window
+
+    def _reset(self, due_ns: int | None, start_ns: int, startup: dict | None = None) -> None:
+        """Every count zero, the run and its window from ``start_ns``, the next tick due at
+        ``due_ns``."""
+        self.ticks = self.late = self.slipped = self.overruns = self.resent = 0
+        self._w_ticks = self._w_late = self._w_slipped = self._w_busy_ns = 0
+        self._intervals = []
+        self._jitter_hist = np.zeros(JITTER_BINS, np.int64)
+        self._last_ns = None
+        self._due_ns = due_ns
+        self._w_start = self._start_ns = start_ns
+        self._cpu0 = time.process_time_ns()
+        self.startup = dict(startup or {})
         self.ended = False  # the final report went out (publish_final)
 
     def start(self, start_ns: int, startup: dict | None = None) -> None:
@@ -214,16 +216,7 @@ class TickTiming:
         'Discovery (s)': ..}``) is reported beside them. Ticks fall due on a grid anchored at
         ``start_ns`` (:meth:`on_schedule`)."""
         from rclpy.clock import Clock as RosClock, ClockType
-        self.ticks = self.late = self.slipped = self.overruns = self.resent = 0
-        self._w_ticks = self._w_late = self._w_slipped = self._w_busy_ns = 0
-        self._intervals = []
-        self._jitter_hist = np.zeros(JITTER_BINS, np.int64)
-        self._last_ns = None
-        self._due_ns = start_ns
-        self._w_start = self._start_ns = max(start_ns, time.monotonic_ns())
-        self._cpu0 = time.process_time_ns()
-        self.startup = dict(startup or {})
-        self.ended = False
+        self._reset(start_ns, max(start_ns, time.monotonic_ns()), startup)
         if self.timer is None:
             self.timer = self.node.create_timer(self.window_s, self.publish,
                                                 clock=RosClock(clock_type=ClockType.STEADY_TIME))
@@ -369,16 +362,23 @@ class TickTiming:
         self._send(values)
 
     def _send(self, values: dict) -> None:
-        from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-        level, message = self._level
-        st = DiagnosticStatus(name=self.name, message=message,
-                              hardware_id=self.node.get_fully_qualified_name())
-        st.level = level
-        st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
-        msg = self._array()
-        msg.header.stamp = self.node.get_clock().now().to_msg()
-        msg.status = [st]
-        self.pub.publish(msg)
+        publish_status(self.node, self.pub, self.name, *self._level, values)
+
+
+def publish_status(node: Node, pub, name: str, level, message: str, values: dict,
+                   hardware_id: str | None = None) -> None:
+    """Publish one ``DiagnosticStatus`` ``name`` on ``/diagnostics`` through ``pub``, stamped
+    now: ``level``, ``message``, ``values`` as key-values (``str`` of each) and ``hardware_id``
+    (default: the node's full name)."""
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+    st = DiagnosticStatus(name=name, message=message,
+                          hardware_id=hardware_id or node.get_fully_qualified_name())
+    st.level = level
+    st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+    msg = DiagnosticArray()
+    msg.header.stamp = node.get_clock().now().to_msg()
+    msg.status = [st]
+    pub.publish(msg)
 
 
 class EventChannel:
@@ -576,24 +576,18 @@ class NodeLoop:
             sys.setswitchinterval(float(self.options['switch_interval_s']))
         rest = RealtimeSettings(thread_priority=int(self.options.get('executor_priority', 0)),
                                 lock_memory=self.settings.lock_memory)
-        if rest.thread_priority or rest.lock_memory:
-            for line in apply_realtime(rest):
-                self.node.get_logger().warning(line)
+        for line in apply_realtime(rest):  # nothing where both are off
+            self.node.get_logger().warning(line)
 
     def _on_thread_start(self) -> None:
         from eha_ros.realtime import apply_realtime, RealtimeSettings
-        try:
+        with suppress(AttributeError, OSError):
             import ctypes
             libc = ctypes.CDLL(None)
             libc.prctl(29, 1, 0, 0, 0)  # PR_SET_TIMERSLACK: 1 ns
             libc.prctl(15, ctypes.c_char_p(LOOP_THREAD_NAME.encode()), 0, 0, 0)  # PR_SET_NAME
-        except (AttributeError, OSError):
-            pass
-        if self.settings.cpu_affinity:
-            pinned = RealtimeSettings(cpu_affinity=self.settings.cpu_affinity)
-            for line in apply_realtime(pinned, threads='current'):
-                self.node.get_logger().warning(line)
-        for line in self.loop.warnings:
+        pinned = RealtimeSettings(cpu_affinity=self.settings.cpu_affinity)
+        for line in apply_realtime(pinned, threads='current') + self.loop.warnings:
             self.node.get_logger().warning(line)
         if self.trace is not None:
             self.trace.bind_thread()
@@ -638,13 +632,56 @@ class NodeLoop:
                     f'{self.trace.capacity} (trace_ticks) were not recorded')
 
 
-def apply_realtime_settings(node: Node, settings) -> None:
-    """Apply ``settings`` to the process; each refusal by the OS is one warning saying what to
-    change (the node runs on without it)."""
+def node_loop(node: Node, wanted: bool, on_wake: Callable[[int], None], settings,
+              options: dict, why: str) -> NodeLoop | None:
+    """Where ``wanted``, the node's :class:`NodeLoop` at ``node.period_ns``, ``node.timing``
+    counting under its lock; else None, the loop's parameters refused (``why``:
+    :func:`refuse_loop_options`)."""
+    if not wanted:
+        refuse_loop_options(options, why)
+        return None
+    loop = NodeLoop(node, node.period_ns, on_wake, settings, options)
+    node.timing.lock = loop.lock
+    return loop
+
+
+#: What :func:`locked` holds in a node without a tick loop.
+_NO_LOOP = nullcontext()
+
+
+def locked(method):
+    """``method`` run holding the lock of the node's tick loop ``rt_loop`` (none without)."""
+    @functools.wraps(method)
+    def run(self, *args):
+        with _NO_LOOP if self.rt_loop is None else self.rt_loop.lock:
+            return method(self, *args)
+    return run
+
+
+def take_changes(target, changes: dict, **kinds) -> None:
+    """Set each attribute of ``target`` that ``kinds`` names (``name=type``) and ``changes``
+    (a set of parameters) holds to its new value, as that type."""
+    for name, kind in kinds.items():
+        if name in changes:
+            setattr(target, name, kind(changes[name]))
+
+
+def check_choice(name: str, value, choices) -> None:
+    """Refuse ``value`` of parameter ``name`` unless it is one of ``choices``."""
+    if value not in choices:
+        raise ParameterError(f'{name} {value!r} must be one of {", ".join(choices)}')
+
+
+def apply_realtime_settings(node: Node, settings, loop: NodeLoop | None = None) -> None:
+    """Apply ``settings`` to the process (with a tick loop ``loop``, its
+    :meth:`NodeLoop.apply_process_settings` instead); each refusal by the OS is one warning
+    saying what to change (the node runs on without it)."""
     from eha_ros.realtime import apply_realtime
-    if settings.thread_priority or settings.cpu_affinity or settings.lock_memory:
-        for line in apply_realtime(settings):
-            node.get_logger().warning(line)
+    if loop is not None:
+        loop.apply_process_settings()
+        return
+    for line in apply_realtime(settings):  # nothing where every setting is off
+        node.get_logger().warning(line)
 
 
 def run_node(factory: Callable[[], Node], args=None) -> int:
@@ -672,9 +709,7 @@ def run_node(factory: Callable[[], Node], args=None) -> int:
         return 2
     finally:
         if node is not None:
-            close = getattr(node, 'close', None)
-            if close is not None:
-                close()
+            getattr(node, 'close', lambda: None)()
             node.destroy_node()
         if rclpy.ok():
             rclpy.try_shutdown()
