@@ -28,14 +28,18 @@ from eha_ros.physics.commands import WAVEFORMS
 
 from eha_ros.graph import TOPIC_DIAGNOSTICS
 
-from .common import (advertise, apply_realtime_settings, begin_timing, declare, declare_loop,
-                     declare_realtime, MODES, NodeLoop, ns_to_stamp, refuse_loop_options,
-                     run_node, stamp_to_ns, subscribe, TickTiming, TOPIC_CLOCK, TOPIC_COMMAND,
-                     validator)
+from .common import (advertise, apply_realtime_settings, begin_timing, check_choice, declare,
+                     declare_loop, declare_realtime, locked, MODES, node_loop, ns_to_stamp,
+                     run_node, stamp_to_ns, subscribe, take_changes, TickTiming, TOPIC_CLOCK,
+                     TOPIC_COMMAND, validator)
 from .handshake import Handshake
 
-_WAVE_PARAMS = ('amplitude_m', 'frequency_rad_s', 'start_s', 'ramp_time_s', 'f0_hz', 'f1_hz',
-                'sweep_time_s')
+#: The waveform's parameters and their descriptions.
+_WAVE_PARAMS = {'amplitude_m': 'amplitude [m]',
+                'frequency_rad_s': 'sine angular frequency [rad/s]',
+                'start_s': 'start time [s]', 'ramp_time_s': 'ramp time [s]',
+                'f0_hz': 'chirp start frequency [Hz]', 'f1_hz': 'chirp end frequency [Hz]',
+                'sweep_time_s': 'chirp sweep time [s]'}
 
 
 class CommandGenerator(Node):
@@ -48,15 +52,11 @@ class CommandGenerator(Node):
         declare(self, 'scenario', 'step_0p1', 'named scenario of config/scenarios.yaml; empty: '
                 'use the waveform parameters', choices=sorted(self._scenarios) + [''])
         declare(self, 'waveform', 'step', 'waveform when scenario is empty', choices=WAVEFORMS)
-        for name, text in (('amplitude_m', 'amplitude [m]'),
-                           ('frequency_rad_s', 'sine angular frequency [rad/s]'),
-                           ('start_s', 'start time [s]'), ('ramp_time_s', 'ramp time [s]'),
-                           ('f0_hz', 'chirp start frequency [Hz]'),
-                           ('f1_hz', 'chirp end frequency [Hz]'),
-                           ('sweep_time_s', 'chirp sweep time [s]')):
+        for name, text in _WAVE_PARAMS.items():
             declare(self, name, 0.0, text)
-        declare(self, 'rate_hz', 1000.0, 'publication rate in realtime mode [Hz]', 1.0, 1e5)
-        declare(self, 'mode', 'realtime', 'timing mode', choices=MODES)
+        rate = declare(self, 'rate_hz', 1000.0, 'publication rate in realtime mode [Hz]', 1.0,
+                       1e5)
+        self.mode = declare(self, 'mode', 'realtime', 'timing mode', choices=MODES)
         self.max_catch_up = declare(self, 'max_catch_up', 50, 'realtime: most late samples '
                                     'published at once; a longer stall slips', 1, 100000)
         self.duration_s = declare(self, 'duration_s', 0.0, "the run's end [s]: the sample of "
@@ -66,14 +66,12 @@ class CommandGenerator(Node):
         loop_options = declare_loop(self)
         self.scenario = self._build(self._values())
         self.scenario.value(0.0)  # compile the command kernel now, not in the first tick
-        self._check_mode(self.get_parameter('mode').value)
+        check_choice('mode', self.mode, MODES)
         self.add_on_set_parameters_callback(validator(self._on_set))
         self.pub = advertise(self, ActuatorCommand, TOPIC_COMMAND)
-        self.mode = self.get_parameter('mode').value
         self.published = 0
-        self.timing = TickTiming(self, self.get_parameter('rate_hz').value,
-                                 self.mode == 'realtime')
-        self.period_ns = round(1e9 / self.get_parameter('rate_hz').value)
+        self.timing = TickTiming(self, rate, self.mode == 'realtime')
+        self.period_ns = round(1e9 / rate)
         self.handshake = Handshake(self, on_start=self._on_start)
         self.handshake.watch(self.pub, TOPIC_COMMAND)
         self.handshake.watch(self.timing.pub, TOPIC_DIAGNOSTICS)
@@ -82,18 +80,11 @@ class CommandGenerator(Node):
             self.handshake.watch(clock_sub, TOPIC_CLOCK)
         self._t0_ns = None
         self.fatal = None
-        self.rt_loop = None
-        if self.mode == 'realtime':  # the samples in a thread of their own
-            self.rt_loop = NodeLoop(self, self.period_ns, self._on_loop_wake, realtime,
-                                    loop_options)
-            self.timing.lock = self.rt_loop.lock
-        else:
-            refuse_loop_options(loop_options, 'a lockstep command generator')
+        # realtime: the samples in a thread of their own
+        self.rt_loop = node_loop(self, self.mode == 'realtime', self._on_loop_wake, realtime,
+                                 loop_options, 'a lockstep command generator')
         self._warm_up_s = (time.monotonic_ns() - init_ns) * 1e-9
-        if self.rt_loop is not None:
-            self.rt_loop.apply_process_settings()
-        else:
-            apply_realtime_settings(self, realtime)
+        apply_realtime_settings(self, realtime, self.rt_loop)
 
     def _on_start(self, start_ns: int, mode: str) -> None:
         """The graph starts: realtime commands are timed from the common start."""
@@ -111,7 +102,7 @@ class CommandGenerator(Node):
         self.slipped_ticks = 0
 
     def _values(self, changes=None) -> dict:
-        names = ('scenario', 'waveform') + _WAVE_PARAMS
+        names = ('scenario', 'waveform', *_WAVE_PARAMS)
         d = {n: self.get_parameter(n).value for n in names}
         d.update(changes or {})
         return d
@@ -125,27 +116,14 @@ class CommandGenerator(Node):
         return Scenario(name='custom', waveform=d['waveform'], duration_s=1e9,
                         **{k: float(d[k]) for k in _WAVE_PARAMS})
 
-    @staticmethod
-    def _check_mode(mode):
-        if mode not in MODES:
-            raise ParameterError(f'mode {mode!r} must be one of {", ".join(MODES)}')
-
+    @locked
     def _on_set(self, changes):
-        if self.rt_loop is None:
-            return self._on_set_locked(changes)
-        with self.rt_loop.lock:
-            return self._on_set_locked(changes)
-
-    def _on_set_locked(self, changes):
         if 'mode' in changes:
-            self._check_mode(changes['mode'])
+            check_choice('mode', changes['mode'], MODES)
             raise ParameterError('mode cannot change while running')
         if 'rate_hz' in changes and changes['rate_hz'] != self.get_parameter('rate_hz').value:
             raise ParameterError('rate_hz cannot change while running')
-        if 'max_catch_up' in changes:
-            self.max_catch_up = int(changes['max_catch_up'])
-        if 'duration_s' in changes:
-            self.duration_s = float(changes['duration_s'])
+        take_changes(self, changes, max_catch_up=int, duration_s=float)
         if set(changes) & (set(_WAVE_PARAMS) | {'scenario', 'waveform'}):
             self.scenario = self._build(self._values(changes))
 
