@@ -37,7 +37,6 @@ physics-only closed loop.  Parameters: ``kp_a_m``, ``ki_a_m_s``, ``kd_a_s_m``,
 from __future__ import annotations
 
 import math
-from contextlib import nullcontext
 import time
 
 from rclpy.node import Node
@@ -49,10 +48,10 @@ from eha_ros.physics.events import CONTROLLER_RUNTIME, EventSchedule, parse_even
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import PositionController
 
-from .common import (advertise, apply_realtime_settings, begin_timing, declare, declare_loop,
-                     declare_physics, declare_realtime, EventChannel, MODES, NodeLoop,
-                     refuse_loop_options, run_node, stamp_to_ns, subscribe, TickTiming,
-                     TOPIC_COMMAND, TOPIC_SERVOVALVE, TOPIC_STATE, validator)
+from .common import (advertise, apply_realtime_settings, begin_timing, check_choice, declare,
+                     declare_loop, declare_physics, declare_realtime, EventChannel, locked,
+                     MODES, node_loop, publish_status, run_node, stamp_to_ns, subscribe,
+                     TickTiming, TOPIC_COMMAND, TOPIC_SERVOVALVE, TOPIC_STATE, validator)
 from .handshake import Handshake
 
 GAINS = CONTROLLER_RUNTIME
@@ -73,7 +72,7 @@ class Controller(Node):
         self.base = load_params(path or None)
         declare_physics(self, self.base, GAINS)
         declare(self, 'rate_hz', 1000.0, 'control rate [Hz]', 1.0, 1e5)
-        declare(self, 'mode', 'realtime', 'timing mode', choices=MODES)
+        self.mode = declare(self, 'mode', 'realtime', 'timing mode', choices=MODES)
         self.trigger = declare(self, 'trigger', 'state', 'realtime: a control step per plant '
                                'state, or per tick of its own timer', choices=TRIGGERS)
         events = declare(self, 'events', [''], "gain changes on the simulation clock: "
@@ -84,11 +83,8 @@ class Controller(Node):
                                        '(wall time)', 1e-3, 3600.0)
         realtime = declare_realtime(self)
         loop_options = declare_loop(self)
-        if self.trigger not in TRIGGERS:
-            raise ParameterError(f'trigger {self.trigger!r} must be one of {", ".join(TRIGGERS)}')
-        self.mode = self.get_parameter('mode').value
-        if self.mode not in MODES:
-            raise ParameterError(f'mode {self.mode!r} must be one of {", ".join(MODES)}')
+        check_choice('trigger', self.trigger, TRIGGERS)
+        check_choice('mode', self.mode, MODES)
         self.period_s = 1.0 / self.get_parameter('rate_hz').value
         self.params = self._params({})
         self.period_ns = round(self.period_s * 1e9)
@@ -120,20 +116,12 @@ class Controller(Node):
                               (state_sub, TOPIC_STATE), (self.timing.pub, TOPIC_DIAGNOSTICS)):
             self.handshake.watch(entity, topic)
         self.fatal = None
-        self.rt_loop = None
-        if self.mode == 'realtime' and self.trigger == 'timer':  # a thread of its own
-            self.rt_loop = NodeLoop(self, self.period_ns, self._on_loop_wake, realtime,
-                                    loop_options)
-            self.timing.lock = self.rt_loop.lock
-        else:
-            refuse_loop_options(loop_options, 'a controller clocked by states (trigger: state) '
-                                'or in lockstep')
-        self._lock = self.rt_loop.lock if self.rt_loop is not None else nullcontext()
+        self.rt_loop = node_loop(  # realtime, trigger: timer: a thread of its own
+            self, self.mode == 'realtime' and self.trigger == 'timer', self._on_loop_wake,
+            realtime, loop_options, 'a controller clocked by states (trigger: state) or in '
+            'lockstep')
         self._warm_up_s = (time.monotonic_ns() - init_ns) * 1e-9
-        if self.rt_loop is not None:
-            self.rt_loop.apply_process_settings()
-        else:
-            apply_realtime_settings(self, realtime)
+        apply_realtime_settings(self, realtime, self.rt_loop)
 
     def _on_start(self, start_ns: int, mode: str) -> None:
         from rclpy.clock import Clock as RosClock, ClockType
@@ -154,11 +142,8 @@ class Controller(Node):
         values.update({k: v for k, v in changes.items() if k in GAINS})
         return replace(self.base, **values)
 
+    @locked
     def _on_set(self, changes):
-        with self._lock:
-            self._on_set_locked(changes)
-
-    def _on_set_locked(self, changes):
         frozen = {'mode', 'rate_hz', 'params_file', 'trigger', 'events', 'thread_priority',
                   'cpu_affinity', 'lock_memory', 'state_timeout_s', 'executor_priority',
                   'switch_interval_s', 'trace_file', 'trace_ticks'} & set(changes)
@@ -212,21 +197,16 @@ class Controller(Node):
         self._publish_state_watchdog()
 
     def _publish_state_watchdog(self):
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-        st = DiagnosticStatus(name=self.get_name() + ': state watchdog',
-                              hardware_id=self.get_fully_qualified_name())
+        from diagnostic_msgs.msg import DiagnosticStatus
         if self._state_timed_out:
-            st.level = DiagnosticStatus.ERROR
-            st.message = (f'no plant state for {self.state_timeout_s:g} s since t = '
-                          f'{self._stamp_ns * 1e-9:.6g} s: null current, control stopped')
+            level = DiagnosticStatus.ERROR
+            message = (f'no plant state for {self.state_timeout_s:g} s since t = '
+                       f'{self._stamp_ns * 1e-9:.6g} s: null current, control stopped')
         else:
-            st.level, st.message = DiagnosticStatus.OK, 'plant states arriving'
-        st.values = [KeyValue(key='Timeout (s)', value=str(self.state_timeout_s)),
-                     KeyValue(key='Last state (s)', value=str(self._stamp_ns * 1e-9))]
-        msg = DiagnosticArray()
-        msg.header.stamp = self.get_clock().now().to_msg()
-        msg.status = [st]
-        self.timing.pub.publish(msg)
+            level, message = DiagnosticStatus.OK, 'plant states arriving'
+        publish_status(self, self.timing.pub, self.get_name() + ': state watchdog', level,
+                       message, {'Timeout (s)': self.state_timeout_s,
+                                 'Last state (s)': self._stamp_ns * 1e-9})
 
     # realtime -------------------------------------------------------------------------------
     def _on_timer(self):
@@ -252,22 +232,16 @@ class Controller(Node):
             self.rt_loop.close()
 
     # both modes ----------------------------------------------------------------------------
+    @locked
     def _on_command(self, msg: ActuatorCommand):
-        with self._lock:
-            self._on_command_locked(msg)
-
-    def _on_command_locked(self, msg: ActuatorCommand):
         self.command_m = msg.position_setpoint_m
         if self.mode == 'lockstep':
             t_ns = stamp_to_ns(msg.header.stamp)
             self._commands[t_ns] = (msg.position_setpoint_m, msg.header.stamp)
             self._try_answer()
 
+    @locked
     def _on_state(self, msg: ActuatorState):
-        with self._lock:
-            self._on_state_locked(msg)
-
-    def _on_state_locked(self, msg: ActuatorState):
         self._last_state_ns = time.monotonic_ns()
         self._plant_done = msg.final_state
         if self._state_timed_out:
