@@ -73,12 +73,10 @@ is refused with the reason.
 from __future__ import annotations
 
 import math
-from contextlib import nullcontext
 import time
 from types import SimpleNamespace
 
-from rclpy.clock import Clock as RosClock
-from rclpy.clock import ClockType
+from rclpy.clock import Clock as RosClock, ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
@@ -95,11 +93,11 @@ from eha_ros.physics.bench import ConditionSensors, load_bench
 from eha_ros.physics.maintenance import PreflightCheck, ValveTest, VALVE_TEST_PROCEDURES
 from eha_ros.watchdog import SAFE_ACTIONS, TickWatchdog
 
-from .common import (advertise, apply_realtime_settings, begin_timing, declare,
-                     declare_loop, declare_physics, declare_realtime, EventChannel, MODES,
-                     NodeLoop, ns_to_stamp, refuse_loop_options, run_node, stamp_to_ns,
-                     subscribe, take_waiting, TickTiming, TOPIC_CLOCK, TOPIC_SERVOVALVE,
-                     TOPIC_STATE, validator)
+from .common import (advertise, apply_realtime_settings, begin_timing, check_choice, declare,
+                     declare_loop, declare_physics, declare_realtime, EventChannel, locked,
+                     MODES, node_loop, ns_to_stamp, publish_status, run_node, stamp_to_ns,
+                     subscribe, take_changes, take_waiting, TickTiming, TOPIC_CLOCK,
+                     TOPIC_SERVOVALVE, TOPIC_STATE, validator)
 from .handshake import StartCoordinator
 
 #: The status of each operating condition (:func:`eha_ros.physics.state.operating_condition`).
@@ -114,8 +112,7 @@ def load_fluid(model: str, params):
     """The fluid block for ``model``: None for hf, else the shipped surrogate."""
     if model == 'hf':
         return None
-    if model not in MODELS:
-        raise ParameterError(f'model {model!r} must be one of {", ".join(MODELS)}')
+    check_choice('model', model, MODELS)
     from eha_ros.surrogates.registry import load_surrogate
     return load_surrogate(model, params)
 
@@ -127,12 +124,9 @@ class ServovalvePlant(Node):
         init_ns = time.monotonic_ns()
         super().__init__('servovalve_plant', **kwargs)
         s = self._declare_parameters()
-        base, dt_s, integrator, rate, seed = s.base, s.dt_s, s.integrator, s.rate, s.seed
-        events, realtime, loop_options, procedure = s.events, s.realtime, s.loop_options, \
-            s.procedure
-        if self.mode not in MODES:
-            raise ParameterError(f'mode {self.mode!r} must be one of {", ".join(MODES)}')
-        params = replace(base, **{n: self.get_parameter(n).value for n in PLANT_RUNTIME})
+        dt_s, integrator, rate, seed = s.dt_s, s.integrator, s.rate, s.seed
+        check_choice('mode', self.mode, MODES)
+        params = replace(s.base, **{n: self.get_parameter(n).value for n in PLANT_RUNTIME})
         self.fluid = load_fluid(self.model, params)
         self.plant = Plant(params, dt_s=dt_s, seed=seed, fluid=self.fluid,
                            integrator=integrator)
@@ -148,17 +142,15 @@ class ServovalvePlant(Node):
         self._unanswered_since = None  # realtime: first state published since the last command
         self._missing = False    # lockstep: the last tick's command was missing
         self.stopped = False     # the watchdog's stop action ended the run
-        self.schedule = EventSchedule([parse_event(e) for e in events if e.strip()],
+        self.schedule = EventSchedule([parse_event(e) for e in s.events if e.strip()],
                                       allowed=PLANT_RUNTIME, period_ns=period_ns)
         self.schedule.validate(params)
         for ev in self.schedule:
             if self.fluid is not None:
                 self.fluid.check_params(replace(params, **ev.as_dict()))
         self.steps_per_tick = period_ns // self.plant.dt_ns
-        if procedure not in VALVE_TEST_PROCEDURES:
-            raise ParameterError(f'valve_test_procedure {procedure!r} must be one of '
-                                 f'{", ".join(VALVE_TEST_PROCEDURES)}')
-        self.valve_test = (ValveTest.of(procedure, period_ns, dt_s, s.flows) if s.valve_test
+        check_choice('valve_test_procedure', s.procedure, VALVE_TEST_PROCEDURES)
+        self.valve_test = (ValveTest.of(s.procedure, period_ns, dt_s, s.flows) if s.valve_test
                            else None)
         # the test bench's transducers of the conditions: one reading per published tick
         self.sensors = ConditionSensors(seed, load_bench())
@@ -193,8 +185,7 @@ class ServovalvePlant(Node):
         self.fatal = None
         self._msg = None
         self.timing = TickTiming(self, rate, self.mode == 'realtime')
-        steady = RosClock(clock_type=ClockType.STEADY_TIME)
-        self._steady = steady
+        self._steady = RosClock(clock_type=ClockType.STEADY_TIME)
         self._started = False
         self._last_pub_ns = 0
         self._first_pub_ns, self._pub_tick_ns = 0, -1   # lockstep: the tick's first publication
@@ -209,20 +200,14 @@ class ServovalvePlant(Node):
             self.handshake.watch(entity, topic)
         if self.mode == 'lockstep':
             self.handshake.watch(self.clock_pub, TOPIC_CLOCK)
-        self._watchdog = self.create_timer(0.01, self._on_watchdog, clock=steady)
-        self.rt_loop = None
-        if self.mode == 'realtime':  # the tick in a thread of its own
-            self.rt_loop = NodeLoop(self, period_ns, self._on_loop_wake, realtime, loop_options)
-            self.timing.lock = self.rt_loop.lock
-        else:
-            refuse_loop_options(loop_options, 'a lockstep plant')
-        self._lock = self.rt_loop.lock if self.rt_loop else nullcontext()
+        self._watchdog = self.create_timer(0.01, self._on_watchdog, clock=self._steady)
+        # realtime: the tick in a thread of its own
+        self.rt_loop = node_loop(self, self.mode == 'realtime', self._on_loop_wake, s.realtime,
+                                 s.loop_options, 'a lockstep plant')
         self._warm_up_s = (time.monotonic_ns() - init_ns) * 1e-9
         if self.rt_loop is not None:
             self._state_msg()  # the state message's first fill now, not in tick 0
-            self.rt_loop.apply_process_settings()
-        else:
-            apply_realtime_settings(self, realtime)
+        apply_realtime_settings(self, s.realtime, self.rt_loop)
         self.get_logger().info(f'model {self.model}, dt {dt_s:g} s ({integrator}), '
                                f'{self.steps_per_tick} '
                                f'steps per tick, {self.mode}; waiting for '
@@ -232,72 +217,64 @@ class ServovalvePlant(Node):
         """Declare every parameter of the node (the physical ones through
         :func:`.common.declare_physics`); returns the settings the constructor uses, the
         nominal parameters ``base`` among them."""
+        s = SimpleNamespace()
         path = declare(self, 'params_file', '', 'physical parameter YAML (empty: the installed '
                        'config/eha_params.yaml)')
-        base = load_params(path or None)
-        declare_physics(self, base, PLANT_RUNTIME)
+        s.base = load_params(path or None)
+        declare_physics(self, s.base, PLANT_RUNTIME)
         self.model = declare(self, 'model', 'hf', 'fluid-dynamic block', choices=MODELS)
-        dt_s = declare(self, 'dt_s', 1e-6, 'plant integration step [s]', 1e-9, 1e-3)
-        integrator = declare(self, 'integrator', EXPLICIT, 'plant integration scheme '
-                             '(explicit: the 1 us reference; split: implicit chambers, '
-                             'for steps up to tens of us)', choices=INTEGRATORS)
-        rate = declare(self, 'rate_hz', 1000.0, 'tick rate [Hz]', 1.0, 1e5)
+        s.dt_s = declare(self, 'dt_s', 1e-6, 'plant integration step [s]', 1e-9, 1e-3)
+        s.integrator = declare(self, 'integrator', EXPLICIT, 'plant integration scheme '
+                               '(explicit: the 1 us reference; split: implicit chambers, '
+                               'for steps up to tens of us)', choices=INTEGRATORS)
+        s.rate = declare(self, 'rate_hz', 1000.0, 'tick rate [Hz]', 1.0, 1e5)
         self.mode = declare(self, 'mode', 'realtime', 'timing mode', choices=MODES)
-        seed = declare(self, 'seed', 0, 'seed of the torque-motor noise', 0, 2 ** 31 - 1)
+        s.seed = declare(self, 'seed', 0, 'seed of the torque-motor noise', 0, 2 ** 31 - 1)
         self.duration_s = declare(self, 'duration_s', 0.0, 'stop advancing after this simulated '
                                   'time [s] (0: never)', 0.0, 1e9)
         self.resend_s = declare(self, 'resend_s', 2.0, 'lockstep: re-publish the tick after '
                                 'this long without its command [s]', 0.01, 60.0)
-        handshake_nodes = declare(self, 'handshake_nodes', list(DEFAULT_HANDSHAKE_NODES),
-                                  'start-up handshake: nodes whose endpoints must all have '
-                                  'matched before the first tick (this node is always one)')
-        handshake_timeout_s = declare(self, 'handshake_timeout_s', 0.0, 'start-up handshake: '
-                                      'fail after this long without a start [s] (0: wait)',
-                                      0.0, 3600.0)
-        start_delay_s = declare(self, 'start_delay_s', 0.25, 'realtime: the common start '
-                                'lies this long after the handshake completes, so that every '
-                                'node has it in time [s]', 0.0, 10.0)
-        events = declare(self, 'events', [''], "faults on the simulation clock: 'T:name=value"
-                         "[,name=value]' entries, each applied at the first tick whose time "
-                         "is at least T s (empty entries are ignored)")
-        realtime = declare_realtime(self)
-        loop_options = declare_loop(self)
-        valve_test = declare(self, 'valve_test', False, 'run the diagnostic valve test (map '
-                             'sweep, jack clamped) before operating')
-        flows = declare(self, 'valve_test_flows_m3_s',  # those of the valve_test scenario
-                        list(get_scenario('valve_test').valve_test_flows_m3_s),
-                        'valve test: imposed load flows [m^3/s], one P12 curve each')
-        procedure = declare(self, 'valve_test_procedure', 'reference', 'valve test: settled '
-                            '(every point held 0.1 s, fitted by the valve model) or reference '
-                            '(the reference\'s 10 ms map transient)',
-                            choices=VALVE_TEST_PROCEDURES)
-        preflight = declare(self, 'preflight_check', False, 'run the pre-flight check (open-'
-                            'loop current steps and sines, jack free) before operating')
+        s.handshake_nodes = declare(self, 'handshake_nodes', list(DEFAULT_HANDSHAKE_NODES),
+                                    'start-up handshake: nodes whose endpoints must all have '
+                                    'matched before the first tick (this node is always one)')
+        s.handshake_timeout_s = declare(self, 'handshake_timeout_s', 0.0, 'start-up handshake: '
+                                        'fail after this long without a start [s] (0: wait)',
+                                        0.0, 3600.0)
+        s.start_delay_s = declare(self, 'start_delay_s', 0.25, 'realtime: the common start '
+                                  'lies this long after the handshake completes, so that every '
+                                  'node has it in time [s]', 0.0, 10.0)
+        s.events = declare(self, 'events', [''], "faults on the simulation clock: 'T:name=value"
+                           "[,name=value]' entries, each applied at the first tick whose time "
+                           "is at least T s (empty entries are ignored)")
+        s.realtime = declare_realtime(self)
+        s.loop_options = declare_loop(self)
+        s.valve_test = declare(self, 'valve_test', False, 'run the diagnostic valve test (map '
+                               'sweep, jack clamped) before operating')
+        s.flows = declare(self, 'valve_test_flows_m3_s',  # those of the valve_test scenario
+                          list(get_scenario('valve_test').valve_test_flows_m3_s),
+                          'valve test: imposed load flows [m^3/s], one P12 curve each')
+        s.procedure = declare(self, 'valve_test_procedure', 'reference', 'valve test: settled '
+                              '(every point held 0.1 s, fitted by the valve model) or reference '
+                              '(the reference\'s 10 ms map transient)',
+                              choices=VALVE_TEST_PROCEDURES)
+        s.preflight = declare(self, 'preflight_check', False, 'run the pre-flight check (open-'
+                              'loop current steps and sines, jack free) before operating')
         self.max_catch_up = declare(self, 'max_catch_up', 50, 'realtime: most late ticks '
                                     'caught up at once; a longer stall slips', 1, 100000)
-        command_timeout_s = declare(self, 'command_timeout_s', 0.02, 'command watchdog: the '
-                                    'safe action follows this long without a current '
-                                    'command [s] (lockstep: in ticks; realtime: since the '
-                                    'first state left unanswered)', 1e-6, 60.0)
-        timeout_action = declare(self, 'command_timeout_action', 'null_current', 'command '
-                                 'watchdog: what follows the timeout', choices=SAFE_ACTIONS)
+        s.command_timeout_s = declare(self, 'command_timeout_s', 0.02, 'command watchdog: the '
+                                      'safe action follows this long without a current '
+                                      'command [s] (lockstep: in ticks; realtime: since the '
+                                      'first state left unanswered)', 1e-6, 60.0)
+        s.timeout_action = declare(self, 'command_timeout_action', 'null_current', 'command '
+                                   'watchdog: what follows the timeout', choices=SAFE_ACTIONS)
         self.command_wait_s = declare(self, 'command_wait_s', 10.0, 'lockstep: a tick whose '
                                       'command has not come this long after its state counts '
                                       'as missing [s]', 0.01, 3600.0)
-        return SimpleNamespace(base=base, dt_s=dt_s, integrator=integrator, rate=rate, seed=seed,
-                               handshake_nodes=handshake_nodes,
-                               handshake_timeout_s=handshake_timeout_s,
-                               start_delay_s=start_delay_s, events=events, realtime=realtime,
-                               loop_options=loop_options, valve_test=valve_test, flows=flows,
-                               procedure=procedure, preflight=preflight,
-                               command_timeout_s=command_timeout_s, timeout_action=timeout_action)
+        return s
 
     # parameters --------------------------------------------------------------------------
+    @locked
     def _on_set(self, changes):
-        with self._lock:
-            self._on_set_locked(changes)
-
-    def _on_set_locked(self, changes):
         frozen = {'model', 'dt_s', 'integrator', 'rate_hz', 'mode', 'seed', 'params_file',
                   'valve_test',
                   'command_timeout_s', 'command_timeout_action', 'command_wait_s',
@@ -315,12 +292,7 @@ class ServovalvePlant(Node):
                 self.fluid.check_params(params)
             self.plant.set_params(params)
             self.events.publish(self.plant.time_ns, 'live', math.nan, wear)
-        if 'duration_s' in changes:
-            self.duration_s = float(changes['duration_s'])
-        if 'max_catch_up' in changes:
-            self.max_catch_up = int(changes['max_catch_up'])
-        if 'resend_s' in changes:
-            self.resend_s = float(changes['resend_s'])
+        take_changes(self, changes, duration_s=float, max_catch_up=int, resend_s=float)
 
     # command watchdog --------------------------------------------------------------------
     def _operating_current(self) -> float:
@@ -355,15 +327,12 @@ class ServovalvePlant(Node):
                             {'safe_action': wd.code, 'command_age_ticks': tr.age})
         self._publish_watchdog()
 
+    @locked
     def _publish_watchdog(self) -> None:
         """``servovalve_plant: command watchdog`` on ``/diagnostics``: ERROR while an action is
         in force (with the reason and the tick it began), WARN once it has tripped and
         resumed, else OK (with the count of ticks that ran on a stale command)."""
-        with self._lock:
-            self._publish_watchdog_locked()
-
-    def _publish_watchdog_locked(self) -> None:
-        from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+        from diagnostic_msgs.msg import DiagnosticStatus
         wd = self.command_watchdog
         began = getattr(self, '_watchdog_began', None)
         if wd.in_force is not None and began is not None:
@@ -382,14 +351,8 @@ class ServovalvePlant(Node):
                   'Stale ticks since startup': wd.stale_ticks,
                   'Trips since startup': wd.trips,
                   'Began at tick': began[0] if began else -1}
-        st = DiagnosticStatus(name=self.get_name() + ': command watchdog', message=message,
-                              hardware_id=self.get_fully_qualified_name())
-        st.level = level
-        st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
-        msg = DiagnosticArray()
-        msg.header.stamp = self.get_clock().now().to_msg()
-        msg.status = [st]
-        self.timing.pub.publish(msg)
+        publish_status(self, self.timing.pub, self.get_name() + ': command watchdog', level,
+                       message, values)
 
     def _apply_due_events(self) -> None:
         """Scheduled events due at this tick (time at least T) take effect before its steps;
@@ -509,7 +472,7 @@ class ServovalvePlant(Node):
             ns_to_stamp(clock.clock, self.plant.time_ns)
             self.clock_pub.publish(clock)
         self.state_pub.publish(self._state_msg())
-        self._last_pub_ns = RosClock(clock_type=ClockType.STEADY_TIME).now().nanoseconds
+        self._last_pub_ns = self._now_ns()
         if self.plant.time_ns != self._pub_tick_ns:  # a new tick, not a re-sent one
             self._pub_tick_ns, self._first_pub_ns = self.plant.time_ns, self._last_pub_ns
 
@@ -536,7 +499,7 @@ class ServovalvePlant(Node):
 
     # realtime ----------------------------------------------------------------------------
     def _now_ns(self) -> int:
-        """Wall-clock time [ns] that realtime ticks fall due on (the steady clock)."""
+        """The steady clock's time [ns] (realtime ticks fall due on it)."""
         return self._steady.now().nanoseconds
 
     def _take_commands(self) -> None:
@@ -620,7 +583,7 @@ class ServovalvePlant(Node):
             return
         if self.mode != 'lockstep' or self.done or self.diverged:
             return
-        now = self._steady.now().nanoseconds
+        now = self._now_ns()
         waited = now - (self._last_pub_ns if self._missing else self._first_pub_ns)
         if waited > (0.009 if self._missing else self.command_wait_s) * 1e9:
             # the command of this tick is missing: advance on the last one (the watchdog counts)
