@@ -52,11 +52,13 @@ Parameters (``--ros-args -p name:=value``):
 
 from __future__ import annotations
 
+from contextlib import suppress
+import itertools
 import math
 from pathlib import Path
 import threading
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -65,7 +67,8 @@ from rclpy.parameter_client import AsyncParameterClient
 from eha_ros import graph
 from eha_ros.foxglove.core import (ChannelTable, header_stamp_ns, LiveServer, QUEUE_DEPTH,
                                    resolve_parameter)
-from eha_ros.nodes.common import advertise, declare, EventChannel, run_node
+from eha_ros.nodes.common import (advertise, check_choice, declare, EventChannel, publish_status,
+                                  run_node, take_waiting)
 from eha_ros.nodes.handshake import Handshake
 from eha_ros.physics import ParameterError
 from eha_ros.physics.events import CONTROLLER_RUNTIME, PLANT_RUNTIME
@@ -116,11 +119,6 @@ class _Parameters:
         with self._lock:
             return [n for n in self.clients if n not in self.values]
 
-    @property
-    def declared(self) -> dict:
-        with self._lock:
-            return {n: set(v) for n, v in self.values.items()}
-
     def get(self, names):
         with self._lock:
             everything = [{'name': f'{n}.{k}', 'value': v} for n, vals in self.values.items()
@@ -132,7 +130,8 @@ class _Parameters:
 
     def set(self, params, done) -> None:
         refusals, by_node = [], {}
-        declared = self.declared
+        with self._lock:
+            declared = {n: set(v) for n, v in self.values.items()}
         for p in params:
             try:
                 node, name = resolve_parameter(p['name'], declared)
@@ -184,17 +183,11 @@ def _native(value):
 
 def _typed(value, current, name):
     """``value`` as the type of the parameter's ``current`` value (a JSON integer for a
-    double parameter is a double); raises ValueError for another type."""
-    if isinstance(current, bool) or isinstance(value, bool):
-        if isinstance(current, bool) and isinstance(value, bool):
-            return value
-    elif isinstance(current, float) and isinstance(value, (int, float)):
+    double parameter is a double, a boolean is no number); raises ValueError for another
+    type."""
+    if isinstance(current, float) and type(value) in (int, float):
         return float(value)
-    elif isinstance(current, int) and isinstance(value, int):
-        return value
-    elif isinstance(current, str) and isinstance(value, str):
-        return value
-    elif isinstance(current, list) and isinstance(value, list):
+    if type(current) in (bool, int, str, list) and type(value) is type(current):
         return value
     raise ValueError(f'{name} = {value!r} refused: the parameter is of type '
                      f'{type(current).__name__}')
@@ -214,8 +207,7 @@ class FoxgloveBridge(Node):
                             'none), for a caller that asked for port 0')
         mode = declare(self, 'mode', 'realtime', 'the graph timing mode: lockstep adds the '
                        'time capability (simulation time from /clock)', choices=graph.MODES)
-        if mode not in graph.MODES:
-            raise ParameterError(f'mode {mode!r} must be one of {", ".join(graph.MODES)}')
+        check_choice('mode', mode, graph.MODES)
         topics = declare(self, 'topics', list(graph.TOPICS) + [graph.TOPIC_HANDSHAKE],
                          'graph topics to serve, one channel each')
         rates = declare(self, 'decimated_rates_hz', [50.0], 'rates of the decimated channel '
@@ -232,8 +224,7 @@ class FoxgloveBridge(Node):
                         'clients list and set')
         period = declare(self, 'diagnostics_period_s', 1.0, 'period of the bridge\'s own '
                          '/diagnostics status [s]', 0.01, 3600.0)
-        known = dict(graph.TOPICS)
-        known[graph.TOPIC_HANDSHAKE] = 'diagnostic_msgs/msg/DiagnosticStatus'
+        known = {**graph.TOPICS, graph.TOPIC_HANDSHAKE: 'diagnostic_msgs/msg/DiagnosticStatus'}
         unknown = [t for t in topics if t not in known]
         if unknown:
             raise ParameterError(f'topics: {unknown[0]!r} is not a graph topic (topics: '
@@ -249,14 +240,13 @@ class FoxgloveBridge(Node):
         self.server = LiveServer(self.table, host, port, depth, self.parameters,
                                  time=mode == 'lockstep', send_buffer_b=send_buffer,
                                  metadata={'mode': mode})
-        self._subs, self._entries = [], []
+        self._entries = []  # (message class, {'forward': callback, 'sub': subscription, 'topic'})
         for topic, type_name in served.items():
             cls = graph.message_class(type_name)
-            entry: dict = {}
+            entry: dict = {'topic': topic}
             entry['forward'] = self._forward(topic, cls, entry)
             entry['sub'] = self.create_subscription(cls, topic, entry['forward'],
                                                     graph.topic_qos(topic), raw=True)
-            self._subs.append((topic, entry['sub']))
             self._entries.append((cls, entry))
         self.handshake = None
         self.diagnostics = advertise(self, DiagnosticArray, graph.TOPIC_DIAGNOSTICS)
@@ -285,8 +275,9 @@ class FoxgloveBridge(Node):
         clock = topic == graph.TOPIC_CLOCK and self.mode == 'lockstep'
 
         def on_message(data: bytes) -> None:
-            handle = entry['sub'].handle
-            while data is not None:
+            # then what else is waiting: far cheaper than a pass each
+            waiting = (taken for taken, _ in take_waiting(entry['sub'], cls, raw=True))
+            for data in itertools.chain([data], waiting):
                 data = bytes(data)
                 server.publish(topic, data)
                 if state or clock:
@@ -295,9 +286,6 @@ class FoxgloveBridge(Node):
                         self._last_state_ns = t
                     elif t is not None:
                         server.broadcast_time(t)
-                with handle:   # take what else is waiting: far cheaper than a pass each
-                    taken = handle.take_message(cls, True)
-                data = None if taken is None else taken[0]
         return on_message
 
     def _poll(self) -> None:
@@ -306,17 +294,16 @@ class FoxgloveBridge(Node):
             full = [c.id for c in self.table.channels if c.rate_hz is None]
             if self.server.subscribed_clients(full) >= self.wait_for_clients:
                 self.handshake = Handshake(self)
-                for topic, sub in self._subs:
-                    self.handshake.watch(sub, topic)
+                for _, entry in self._entries:
+                    self.handshake.watch(entry['sub'], entry['topic'])
                 self.handshake.watch(self.diagnostics, graph.TOPIC_DIAGNOSTICS)
                 self.handshake.watch(self.events.pub, graph.TOPIC_EVENTS)
 
     def announce(self, node: str, changes: dict) -> None:
         """A live change the node does not publish itself, on ``/eha/events``."""
         own = SELF_ANNOUNCED.get(node, frozenset())
-        mine = {k: v for k, v in changes.items() if k not in own}
-        numeric = {k: float(v) for k, v in mine.items()
-                   if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        numeric = {k: float(v) for k, v in changes.items() if k not in own
+                   and isinstance(v, (int, float)) and not isinstance(v, bool)}
         if numeric:
             self.events.publish(self._last_state_ns, 'live', math.nan, numeric, node=node)
 
@@ -327,12 +314,7 @@ class FoxgloveBridge(Node):
             return
         stats = self.server.client_stats()
         dropped = sum(sum(s['dropped'].values()) for s in stats)
-        st = DiagnosticStatus(name=f'{self.get_name()}: clients',
-                              hardware_id=f'ws://{self.server.host}:{self.server.port}')
-        st.level = DiagnosticStatus.WARN if dropped else DiagnosticStatus.OK
         live = [s for s in stats if s['connected']]
-        st.message = (f'{len(live)} client(s); {dropped} message(s) dropped for slow clients'
-                      if dropped else f'{len(live)} client(s); nothing dropped')
         values = {'Clients connected': len(live), 'Clients since start': len(stats),
                   'Dropped (all clients)': dropped}
         for s in stats:
@@ -341,10 +323,11 @@ class FoxgloveBridge(Node):
             values[f'client {s["client"]} queued'] = s['queued']
             for topic, n in sorted(s['dropped'].items()):
                 values[f'client {s["client"]} dropped {topic}'] = n
-        st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
-        msg = DiagnosticArray(status=[st])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.diagnostics.publish(msg)
+        lost = f'{dropped} message(s) dropped for slow clients' if dropped else 'nothing dropped'
+        publish_status(self, self.diagnostics, f'{self.get_name()}: clients',
+                       DiagnosticStatus.WARN if dropped else DiagnosticStatus.OK,
+                       f'{len(live)} client(s); {lost}', values,
+                       hardware_id=f'ws://{self.server.host}:{self.server.port}')
 
     def close(self) -> None:
         """Forward what the subscriptions still hold, let each client's queue drain (at most
@@ -357,10 +340,8 @@ class FoxgloveBridge(Node):
                 continue
             if taken is not None:
                 entry['forward'](taken[0])
-        try:
+        with suppress(Exception):  # the context may be shut down (SIGINT): nothing to publish on
             self._report()
-        except Exception:  # the context is already shut down (SIGINT): nothing to publish on
-            pass
         for cid, n in sorted(self.server.stop().items()):
             self.get_logger().warning(f'client {cid}: {n} message(s) still queued when the '
                                       f'bridge stopped were not sent (it read too slowly)')
