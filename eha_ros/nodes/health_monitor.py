@@ -47,8 +47,8 @@ from eha_ros.health.monitor import (ITEM_UNITS, ITEMS, SETTLE_S, UPDATE_PERIOD_S
                                     MonitorCore)
 
 from .common import (advertise, apply_realtime_settings, declare, declare_realtime,
-                     ns_to_stamp, run_node, stamp_to_ns, subscribe, TOPIC_DIAGNOSTICS,
-                     TOPIC_HEALTH, TOPIC_STATE, validator)
+                     ns_to_stamp, run_node, stamp_to_ns, subscribe, take_changes,
+                     TOPIC_DIAGNOSTICS, TOPIC_HEALTH, TOPIC_STATE, validator)
 from .handshake import Handshake
 
 #: CANNOT_ASSESS is a WARN on /diagnostics (a maintainer must look), with its reason.
@@ -72,17 +72,11 @@ def health_message(report, core: MonitorCore) -> HealthStatus:
     out.level = int(report.level)
     out.method = report.method
     out.message = report.message
-    names, values, stds, levels = [], [], [], []
-    for name in ITEMS:
-        item = core.items.get(name)
-        names.append(name)
-        values.append(float(item.value) if item else math.nan)
-        stds.append(float(item.std) if item else math.nan)
-        levels.append(int(item.level) if item else 0)
-    out.parameter_names = names
-    out.parameter_values = values
-    out.parameter_stds = stds
-    out.parameter_levels = levels
+    items = [core.items.get(name) for name in ITEMS]
+    out.parameter_names = list(ITEMS)
+    out.parameter_values = [float(item.value) if item else math.nan for item in items]
+    out.parameter_stds = [float(item.std) if item else math.nan for item in items]
+    out.parameter_levels = [int(item.level) if item else 0 for item in items]
     return out
 
 
@@ -147,11 +141,6 @@ class HealthMonitor(Node):
                           clock=RosClock(clock_type=ClockType.STEADY_TIME))
         apply_realtime_settings(self, realtime)
 
-    @property
-    def scheduled(self) -> int:
-        """In-service estimates that fell due so far."""
-        return self.core.scheduled
-
     def _warm_up(self):
         """Compile (or load from numba's cache) what the estimates call before the first
         state arrives: an estimate then takes milliseconds, not a compilation."""
@@ -170,14 +159,8 @@ class HealthMonitor(Node):
                   'lock_memory'} & set(changes)
         if frozen:
             raise ParameterError(f'{sorted(frozen)[0]} cannot change while running')
-        if 'window_s' in changes:
-            self.core.window_s = float(changes['window_s'])
-        if 'update_period_s' in changes:
-            self.core.update_period_s = float(changes['update_period_s'])
-        if 'stale_after_s' in changes:
-            self.stale_after_s = float(changes['stale_after_s'])
-        if 'hardware_id' in changes:
-            self.hardware_id = str(changes['hardware_id'])
+        take_changes(self.core, changes, window_s=float, update_period_s=float)
+        take_changes(self, changes, stale_after_s=float, hardware_id=str)
 
     def _on_state(self, msg: ActuatorState):
         self._last_state_wall = time.monotonic()
@@ -213,7 +196,6 @@ class HealthMonitor(Node):
                      ) -> DiagnosticArray:
         arr = DiagnosticArray()
         ns_to_stamp(arr.header.stamp, stamp_ns)
-        statuses = []
         summary = DiagnosticStatus(name=STATUS_PREFIX + 'estimate',
                                    hardware_id=self.hardware_id)
         if out is None:
@@ -224,7 +206,7 @@ class HealthMonitor(Node):
             summary.values = [_kv('method', out.method), _kv('samples_used', out.samples_used),
                               _kv('pressure_residual_pa', out.pressure_residual_pa),
                               _kv('stamp_ns', str(stamp_ns))]
-        statuses.append(summary)
+        statuses = [summary]
         for name in ITEMS:
             item = self.core.items.get(name)
             st = DiagnosticStatus(name=STATUS_PREFIX + name, hardware_id=self.hardware_id)
