@@ -40,7 +40,7 @@ from rclpy.publisher import Publisher
 
 from eha_ros.graph import is_latched, TOPIC_HANDSHAKE, topic_qos
 
-__all__ = ['COORDINATOR', 'Handshake', 'StartCoordinator', 'evaluate', 'parse_report']
+__all__ = ['COORDINATOR', 'Handshake', 'StartCoordinator', 'evaluate']
 
 #: The node that decides the start (it owns the simulation clock).
 COORDINATOR = 'servovalve_plant'
@@ -78,11 +78,6 @@ def evaluate(reports: Dict[str, Dict[str, int]], nodes: Iterable[str]) -> Option
                     return (f"{node}'s {endpoint} {topic} has matched {count} of its "
                             f'{len(peers)} {what} ({names})')
     return None
-
-
-def parse_report(msg: DiagnosticStatus) -> Dict[str, str]:
-    """A report's key-values as a dict."""
-    return {kv.key: kv.value for kv in msg.values}
 
 
 class Handshake:
@@ -154,7 +149,7 @@ class Handshake:
             self._report(counts)
 
     def _on_report(self, msg: DiagnosticStatus) -> None:
-        values = parse_report(msg)
+        values = {kv.key: kv.value for kv in msg.values}
         self.reports[msg.name] = {k: int(v) for k, v in values.items()
                                   if k.startswith(('pub ', 'sub '))}
         if msg.name == COORDINATOR and 'start_time_ns' in values and not self.started:
@@ -177,15 +172,11 @@ class StartCoordinator(Handshake):
     included) until :func:`evaluate` passes, then publishes the start, ``start_delay_s`` ahead
     in realtime (at once in lockstep). After ``timeout_s`` (0: never) without a start it sets
     ``error`` to one line saying what never matched; it logs what it waits for every
-    ``log_every_s``. ``grid()``, where given, starts the coordinator's periodic timer and
-    returns ``(its creation time, its period)`` (``time.monotonic_ns``, ns): the realtime start
-    is then the first point of that timer's grid at least ``start_delay_s`` ahead."""
+    ``log_every_s``."""
 
     def __init__(self, node: Node, nodes: Iterable[str], mode: str, timeout_s: float,
-                 start_delay_s: float, on_start=None, log_every_s: float = 5.0,
-                 grid: Optional[Callable[[], tuple]] = None):
+                 start_delay_s: float, on_start=None, log_every_s: float = 5.0):
         self.nodes = list(dict.fromkeys(list(nodes) + [node.get_name()]))
-        self.grid = grid
         self.start_monotonic_exact_ns: Optional[int] = None
         self.mode_name = mode
         self.timeout_s = float(timeout_s)
@@ -206,11 +197,6 @@ class StartCoordinator(Handshake):
         if problem is None:
             delay = self.start_delay_s if self.mode_name == 'realtime' else 0.0
             start_mono = now + round(delay * 1e9)
-            if self.grid is not None and self.mode_name == 'realtime':
-                # the start on the coordinator's own timer grid: its first tick is then due
-                # when its timer fires, not a timer latency later
-                origin, period = self.grid()
-                start_mono = origin + -(-(start_mono - origin) // period) * period
             self.start_monotonic_exact_ns = start_mono
             start_ns = start_mono + (time.time_ns() - time.monotonic_ns())
             discovery = (now - self.created_monotonic_ns) * 1e-9
