@@ -65,9 +65,11 @@ of 127 and 143 ms).  :class:`GcPauses` times every collection through ``gc.callb
 
 from __future__ import annotations
 
+from contextlib import suppress
 import ctypes
 import errno
 import gc
+import itertools
 import math
 import os
 import resource
@@ -83,10 +85,8 @@ _CAP_IPC_LOCK = 14
 
 def _machine_cpus() -> set[int]:
     cpus = set(range(os.cpu_count() or 1))
-    try:
+    with suppress(AttributeError, OSError):
         cpus |= os.sched_getaffinity(0)
-    except (AttributeError, OSError):
-        pass
     return cpus
 
 
@@ -159,12 +159,10 @@ def normal_scheduling(cpus=None) -> None:
     (default: left as they are), memory unlocked: undoes :func:`apply_realtime` where the
     process outlives its real-time part."""
     for tid in _thread_ids():
-        try:
+        with suppress(OSError):
             os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
             if cpus:
                 os.sched_setaffinity(tid, cpus)
-        except OSError:
-            pass
     _libc().munlockall()
 
 
@@ -184,25 +182,18 @@ def _libc():
 
 def _ranges(cpus) -> str:
     """``{0, 1, 2, 5}`` -> ``'0-2,5'``."""
-    out, run = [], []
-    for c in sorted(cpus):
-        if run and c != run[-1] + 1:
-            out.append(f'{run[0]}-{run[-1]}' if len(run) > 1 else str(run[0]))
-            run = []
-        run.append(c)
-    if run:
+    out = []
+    for _, run in itertools.groupby(enumerate(sorted(cpus)), lambda ic: ic[1] - ic[0]):
+        run = [c for _, c in run]
         out.append(f'{run[0]}-{run[-1]}' if len(run) > 1 else str(run[0]))
     return ','.join(out)
 
 
 def _status_field(name: str) -> str | None:
-    try:
-        with open('/proc/self/status') as f:
-            for line in f:
-                if line.startswith(name + ':'):
-                    return line.split(':', 1)[1].strip()
-    except OSError:
-        pass
+    with suppress(OSError), open('/proc/self/status') as f:
+        for line in f:
+            if line.startswith(name + ':'):
+                return line.split(':', 1)[1].strip()
     return None
 
 
@@ -266,8 +257,8 @@ def _reason(e: OSError) -> str:
 def _lock_memory() -> str | None:
     current, future = _mcl_flags()
     libc = _libc()
+    soft = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
     if libc.mlockall(current | future) == 0:
-        soft = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
         if soft != resource.RLIM_INFINITY and not _has_capability(_CAP_IPC_LOCK):
             return (f'lock_memory applied, but RLIMIT_MEMLOCK is {_limit_text(soft, 1024)} KiB '
                     f'and new memory is locked as it is mapped: an allocation beyond that '
@@ -276,7 +267,6 @@ def _lock_memory() -> str | None:
         return None
     err = ctypes.get_errno()
     libc.munlockall()  # a partial lock (ENOMEM while faulting in) is undone
-    soft = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
     size = _status_field('VmSize') or '?'
     return (f'lock_memory refused ({os.strerror(err)}; RLIMIT_MEMLOCK '
             f'{_limit_text(soft, 1024, " KiB")}, process size {size}): allow it with '
@@ -294,15 +284,14 @@ def _set_affinity(cpus: tuple[int, ...], threads: str) -> str | None:
     ok, refused, e = _for_threads(lambda tid: os.sched_setaffinity(tid, cpus), threads)
     want = ','.join(map(str, cpus))
     if e is not None:
+        where = 'left as it was' if not ok else f'set on {ok} of {ok + refused} threads'
         if e.errno == errno.EINVAL:
             return (f'cpu_affinity {want} refused ({_reason(e)}): none of these CPUs is in '
                     f'this process\'s cpuset; pick CPUs of the cpuset or give them to it '
-                    f'(docker --cpuset-cpus, systemd AllowedCPUs=, taskset -c); '
-                    f'{"left as it was" if not ok else f"set on {ok} of {ok + refused} threads"}')
+                    f'(docker --cpuset-cpus, systemd AllowedCPUs=, taskset -c); {where}')
         return (f'cpu_affinity {want} refused ({_reason(e)}): run as a user allowed to change '
                 f'affinity (CAP_SYS_NICE for other users\' threads) or start the process with '
-                f'`taskset -c {want}`; '
-                f'{"left as it was" if not ok else f"set on {ok} of {ok + refused} threads"}')
+                f'`taskset -c {want}`; {where}')
     got = os.sched_getaffinity(0)
     if got != set(cpus):
         return (f'cpu_affinity {want} applied as {_ranges(got)}: CPUs '
@@ -351,20 +340,10 @@ def apply_realtime(settings: RealtimeSettings, threads: str = 'all') -> list[str
     """
     if threads not in ('all', 'current'):
         raise ValueError(f"threads must be 'all' or 'current', got {threads!r}")
-    warnings = []
-    if settings.lock_memory:
-        w = _lock_memory()
-        if w:
-            warnings.append(w)
-    if settings.cpu_affinity:
-        w = _set_affinity(settings.cpu_affinity, threads)
-        if w:
-            warnings.append(w)
-    if settings.thread_priority:
-        w = _set_priority(settings.thread_priority, threads)
-        if w:
-            warnings.append(w)
-    return warnings
+    warnings = [settings.lock_memory and _lock_memory(),
+                settings.cpu_affinity and _set_affinity(settings.cpu_affinity, threads),
+                settings.thread_priority and _set_priority(settings.thread_priority, threads)]
+    return [w for w in warnings if w]
 
 
 _POLICIES = {getattr(os, n): n for n in ('SCHED_OTHER', 'SCHED_FIFO', 'SCHED_RR', 'SCHED_BATCH',
@@ -395,11 +374,9 @@ def current_realtime(all_threads: bool = False) -> dict:
     if all_threads:
         threads = {}
         for tid in _thread_ids():
-            try:
+            with suppress(ProcessLookupError):  # the thread exited
                 threads[tid] = (_policy_name(os.sched_getscheduler(tid)),
                                 os.sched_getparam(tid).sched_priority)
-            except ProcessLookupError:
-                pass
         out['threads'] = threads
     return out
 
@@ -470,10 +447,8 @@ class GcPauses:
 
     def close(self) -> None:
         """Remove the hook (idempotent)."""
-        try:
+        with suppress(ValueError):
             gc.callbacks.remove(self._hook)
-        except ValueError:
-            pass
 
     def __enter__(self):
         return self
