@@ -31,6 +31,7 @@ collector, the run queue) explains its lateness.
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import resource
 import threading
@@ -64,13 +65,13 @@ OWN_CAUSES = ('overrun', 'gc', 'gil')
 
 # --- absolute-deadline sleep ------------------------------------------------------------------
 
-_sleep_kernel = None
 
-
+@functools.cache
 def _build_sleep():
-    """The numba kernel: ``clock_nanosleep(CLOCK_MONOTONIC, TIMER_ABSTIME)`` until the deadline
-    (resumed after a signal), then ``clock_gettime``; returns the wake time [ns].  ``nogil``:
-    the GIL is released for the sleep and taken back only after the clock has been read."""
+    """The numba kernel (built at the first call): ``clock_nanosleep(CLOCK_MONOTONIC,
+    TIMER_ABSTIME)`` until the deadline (resumed after a signal), then ``clock_gettime``;
+    returns the wake time [ns].  ``nogil``: the GIL is released for the sleep and taken back
+    only after the clock has been read."""
     import numba
     libc = ctypes.CDLL(None, use_errno=True)
     nanosleep = libc.clock_nanosleep
@@ -100,10 +101,7 @@ def sleep_until(deadline_ns: int, _ts=np.zeros(3, np.int64)) -> int:
     """Sleep until ``deadline_ns`` on the monotonic clock (``time.monotonic_ns``), the GIL
     released; returns the time [ns] the kernel woke the thread (read before the GIL is taken
     back).  Not thread-safe with its default buffer: a :class:`TickLoop` has its own."""
-    global _sleep_kernel
-    if _sleep_kernel is None:
-        _sleep_kernel = _build_sleep()
-    return int(_sleep_kernel(int(deadline_ns), _ts))
+    return int(_build_sleep()(int(deadline_ns), _ts))
 
 
 # --- evidence readers -------------------------------------------------------------------------
@@ -287,9 +285,7 @@ class TickLoop:
         self._ts = np.zeros(3, np.int64)
         self.slept_ns = -1  # when the thread went to sleep for the current wake
         self.on_thread_start = None
-        global _sleep_kernel
-        if _sleep_kernel is None:
-            _sleep_kernel = _build_sleep()
+        self._kernel = _build_sleep()
 
     def start(self, anchor_ns: int) -> None:
         if self._thread is not None:
@@ -313,7 +309,7 @@ class TickLoop:
         self.policy = os.sched_getscheduler(0), os.sched_getparam(0).sched_priority
         if self.on_thread_start is not None:
             self.on_thread_start()
-        kernel, ts, period, anchor = _sleep_kernel, self._ts, self.period_ns, self.anchor_ns
+        kernel, ts, period, anchor = self._kernel, self._ts, self.period_ns, self.anchor_ns
         k = 0
         now = time.monotonic_ns
         try:
