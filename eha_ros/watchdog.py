@@ -79,16 +79,13 @@ class TickWatchdog:
     period_ns : int
         Tick period [ns].
     action : str
-        What follows the timeout: one of ``actions``.
-    actions : tuple of str
-        The actions this watchdog offers (default :data:`SAFE_ACTIONS`).
+        What follows the timeout: one of :data:`SAFE_ACTIONS`.
     """
 
-    def __init__(self, timeout_s: float, period_ns: int, action: str = 'null_current',
-                 actions: tuple = SAFE_ACTIONS):
-        if action not in actions:
+    def __init__(self, timeout_s: float, period_ns: int, action: str = 'null_current'):
+        if action not in SAFE_ACTIONS:
             raise ParameterError(f'watchdog action {action!r} must be one of '
-                                 f'{", ".join(actions)}')
+                                 f'{", ".join(SAFE_ACTIONS)}')
         self.timeout_s = float(timeout_s)
         self.period_ns = int(period_ns)
         self.timeout_ticks = timeout_ticks(timeout_s, period_ns)
