@@ -1,7 +1,6 @@
 """Helpers for tests of the messages: distinctive sample messages and cross-process round trips.
 
-Isolated environments for ROS 2 processes (:func:`ros_environment`) are in
-:mod:`eha_ros.isolation` (re-exported here).
+Isolated environments for ROS 2 processes are in :mod:`eha_ros.isolation`.
 
 The module is also a small command-line tool that tests start as separate processes::
 
@@ -13,6 +12,7 @@ directory first on ``sys.path``, and the source tree has no generated ``eha_ros.
 """
 
 import argparse
+from contextlib import suppress
 import json
 import math
 import os
@@ -24,8 +24,6 @@ import time
 from typing import Dict
 
 from eha_ros import graph
-from eha_ros.isolation import (allocate_domain_id, DOMAIN_IDS, DomainIdLease,  # noqa: F401
-                               RMW_IMPLEMENTATION, ros_environment)
 
 
 class SignalAfter:
@@ -77,11 +75,9 @@ def _float32(value: float) -> float:
     return struct.unpack('<f', struct.pack('<f', value))[0]
 
 
-_INT_LIMITS = {
-    'octet': (0, 255), 'char': (0, 255), 'int8': (-2**7, 2**7 - 1), 'uint8': (0, 2**8 - 1),
-    'int16': (-2**15, 2**15 - 1), 'uint16': (0, 2**16 - 1), 'int32': (-2**31, 2**31 - 1),
-    'uint32': (0, 2**32 - 1), 'int64': (-2**63, 2**63 - 1), 'uint64': (0, 2**64 - 1),
-}
+_INT_LIMITS = {'octet': (0, 255), 'char': (0, 255),
+               **{f'int{b}': (-2 ** (b - 1), 2 ** (b - 1) - 1) for b in (8, 16, 32, 64)},
+               **{f'uint{b}': (0, 2 ** b - 1) for b in (8, 16, 32, 64)}}
 
 
 def _sample_value(cls: type, name: str, type_name: str, index: int):
@@ -178,11 +174,9 @@ def run_publisher(timeout_s: float, period_s: float = 0.05) -> int:
     stop = threading.Event()
 
     def watch_stdin():
-        try:
+        with suppress(OSError, ValueError):
             while sys.stdin.read(1):
                 pass
-        except (OSError, ValueError):
-            pass
         stop.set()
 
     threading.Thread(target=watch_stdin, daemon=True).start()
