@@ -31,8 +31,10 @@ STATE_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_
                 'load_flow_m3_s', 'coil_current_a', 'torque_motor_force_n', 'sim_time_s',
                 'supply_pressure_measured_pa', 'return_pressure_measured_pa',
                 'fluid_temperature_measured_k')
-_STATE_INTS = ('stamp_ns', 'tick', 'status', 'valve_test_point', 'valve_test_point_end',
-               'valve_test_procedure', 'command_age_ticks', 'safe_action')
+#: Integer fields of the state kept as they are (a flag as 0 or 1).
+_STATE_COUNTS = ('tick', 'status', 'valve_test_point', 'valve_test_point_end',
+                 'valve_test_procedure', 'command_age_ticks')
+_STATE_INTS = ('stamp_ns',) + _STATE_COUNTS + ('safe_action',)
 
 
 class Collector:
@@ -68,19 +70,13 @@ class Collector:
         self._last_poll = 0.0
         self._watchdog_changes = 0
 
-        cols = self.state_cols
+        cols, fields = self.state_cols, STATE_FIELDS + _STATE_COUNTS
 
         def on_state(msg, now):
-            for f in STATE_FIELDS:
+            for f in fields:
                 cols[f].append(getattr(msg, f))
             cols['arrival_s'].append(now)
             cols['stamp_ns'].append(stamp_to_ns(msg.header.stamp))
-            cols['tick'].append(msg.tick)
-            cols['status'].append(msg.status)
-            cols['valve_test_point'].append(msg.valve_test_point)
-            cols['valve_test_point_end'].append(int(msg.valve_test_point_end))
-            cols['valve_test_procedure'].append(msg.valve_test_procedure)
-            cols['command_age_ticks'].append(msg.command_age_ticks)
             if msg.safe_action != (cols['safe_action'][-1] if cols['safe_action'] else 0):
                 self._watchdog_changes += 1   # the plant published a trip or a resumption
             cols['safe_action'].append(msg.safe_action)

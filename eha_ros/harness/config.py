@@ -86,14 +86,9 @@ class GraphConfig:
 
     def nodes(self) -> list:
         """The graph's nodes (the harness's collector included), as the handshake names them."""
-        out = ['command_generator', 'controller', 'servovalve_plant']
-        if self.health:
-            out.append('health_monitor')
-        if self.record:
-            out.append('recorder')
-        if self.foxglove:
-            out.append('foxglove_bridge')
-        return out + [COLLECTOR]
+        optional = (('health_monitor', self.health), ('recorder', self.record),
+                    ('foxglove_bridge', self.foxglove))
+        return [*TICKING_NODES, *(node for node, runs in optional if runs), COLLECTOR]
 
     def all_events(self) -> list:
         """The scenario's events, then ``events``: ``[(t_s, node, {parameter: value})]``."""

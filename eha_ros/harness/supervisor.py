@@ -432,14 +432,10 @@ class GraphRun:
             os.environ.pop(k, None)
 
 
-def run_graph(config: GraphConfig | None = None, processes: bool = True, env: dict | None = None,
-              timeout_s: float = 300.0, log_dir: str | None = None, stop=None,
-              on_start=None, delays: dict | None = None,
-              delay_after_start: bool = False) -> GraphResult:
+def run_graph(config: GraphConfig | None = None, **options) -> GraphResult:
     """Run ``config`` until the plant has simulated its duration: :class:`GraphRun` (which
-    describes the arguments and what it raises) in one call."""
-    with GraphRun(config, processes, env, timeout_s, log_dir, stop, on_start, delays,
-                  delay_after_start) as run:
+    describes the ``options`` and what it raises) in one call."""
+    with GraphRun(config, **options) as run:
         return run.wait()
 
 
