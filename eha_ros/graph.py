@@ -177,12 +177,8 @@ def topics_in(namespace: str = NAMESPACE) -> Dict[str, str]:
     ``/diagnostics`` and ``/clock`` are global and keep their names.
     """
     namespace = '/' + namespace.strip('/') if namespace.strip('/') else ''
-    out = {}
-    for name, type_name in TOPICS.items():
-        if name.startswith(NAMESPACE + '/'):
-            name = namespace + name[len(NAMESPACE):]
-        out[name] = type_name
-    return out
+    return {(namespace + name[len(NAMESPACE):] if name.startswith(NAMESPACE + '/') else name):
+            type_name for name, type_name in TOPICS.items()}
 
 
 def normalize_type(type_name: str) -> str:
