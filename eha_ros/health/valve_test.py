@@ -46,7 +46,7 @@ from eha_ros.physics.params import ParameterError
 
 __all__ = ['read_diagnostic', 'ValveTestEstimator', 'WearEstimate', 'DiagnosticModel',
            'load_diagnostic', 'estimate_wear', 'estimate_wear_batch', 'estimate_wear_map',
-           'canonical_curves', 'default_model', 'OUTPUT_NAMES', 'OUTPUT_UNITS']
+           'canonical_curves', 'OUTPUT_NAMES', 'OUTPUT_UNITS']
 
 #: The network's outputs, in order (the reference's order: clearance, then overlap).
 OUTPUT_NAMES = ('radial_clearance_m', 'overlap_m')
@@ -134,12 +134,6 @@ def _read_diagnostic(path: Path) -> DiagnosticModel:
 read_diagnostic = CachedReader(_read_diagnostic)
 
 
-def default_model() -> DiagnosticModel:
-    """The shipped network, checked for the nominal parameters (read once per state of the
-    file, :data:`read_diagnostic`)."""
-    return load_diagnostic()
-
-
 def _curves(model: DiagnosticModel, p12, xs_m):
     p12 = np.atleast_2d(np.asarray(p12, dtype=float))
     if xs_m is not None:
@@ -165,7 +159,7 @@ def estimate_wear_batch(p12_curves_pa, q_m3_s, xs_m=None, model: DiagnosticModel
     q_m3_s : array (n,) or float
         Imposed flow [m^3/s] of each curve.
     """
-    m = model if model is not None else default_model()
+    m = model if model is not None else load_diagnostic()
     p12 = _curves(m, p12_curves_pa, xs_m)
     q = np.broadcast_to(np.asarray(q_m3_s, dtype=float), (p12.shape[0],))
     out = m.forward(p12, np.ascontiguousarray(q))
@@ -197,8 +191,6 @@ def estimate_wear_map(p12_map_pa, q_m3_s, xs_m=None, model: DiagnosticModel | No
                         int(q.size), c, o)
 
 
-# --- data, noise, errors ---------------------------------------------------------------------
-
 def canonical_curves(p12_curves_pa, q_m3_s):
     """Curves at negative flow mapped onto positive flow by the valve's symmetry.
 
@@ -212,9 +204,6 @@ def canonical_curves(p12_curves_pa, q_m3_s):
     out = p12.copy()
     out[neg] = -p12[neg, ::-1]
     return out, np.abs(q)
-
-
-# --- training ---------------------------------------------------------------------------------
 
 
 class ValveTestEstimator:
@@ -247,8 +236,6 @@ class ValveTestEstimator:
         increasing order (resampled onto the network's grid if they are not it)."""
         from eha_ros.physics.maps import transient_map
         from eha_ros.physics.params import replace
-
-        from eha_ros.health.valve_test import estimate_wear
         curves = [(float(q), np.asarray(xs, dtype=float), np.asarray(p, dtype=float))
                   for q, xs, p in curves]
         if not curves:
@@ -256,18 +243,15 @@ class ValveTestEstimator:
         grid = self.model.xs_m
         est = [estimate_wear(p, q, model=self.model, xs_m=None if np.array_equal(xs, grid)
                              else xs) for q, xs, p in curves]
-        c = np.array([e[0] for e in est])
-        o = np.array([e[1] for e in est])
+        c, o = (np.array(v) for v in zip(*est))
         clr, lap = float(np.median(c)), float(np.median(o))
         lo, hi = WEAR_RANGES['radial_clearance_m']
         model_params = replace(self.params, radial_clearance_m=float(np.clip(clr, lo * 0.5,
                                                                              hi * 2)),
                                overlap_supply_m=lap, overlap_return_m=lap)
-        r2, n = 0.0, 0
-        for q, xs, p in curves:
-            pred = transient_map(xs, q, params=model_params)['p12_pa']
-            r2 += float(np.sum((pred - p) ** 2))
-            n += p.size
+        r2 = sum(float(np.sum((transient_map(xs, q, params=model_params)['p12_pa'] - p) ** 2))
+                 for q, xs, p in curves)
+        n = sum(p.size for _, _, p in curves)
         # the curves' spread, floored at the network's own held-out error: on clean curves (per
         # map, or per curve over the root of the curves used, whichever is larger), plus
         # the per-curve error at 1 % noise scaled by the noise the data show (measurement
