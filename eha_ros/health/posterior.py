@@ -40,7 +40,7 @@ import numpy as np
 
 from eha_ros.health.thresholds import HealthEstimate, HealthThresholds
 from eha_ros.physics import PlantParams, default_params
-from eha_ros.physics.maps import WEAR_RANGES, steady_map
+from eha_ros.physics.maps import WEAR_RANGES
 from eha_ros.physics.params import ParameterError
 
 __all__ = ['InServiceEstimator']
@@ -138,17 +138,6 @@ class InServiceEstimator:
                               nominal_residual_pa=float(np.sqrt(mse[a, b])),
                               correlation=float(rho), beyond=beyond)
 
-    def _predict(self, xs, q, lap, clr):
-        if self.model is None:
-            return steady_map(xs, q, lap, clr, params=self.params)['p12_pa']
-        return self.model(xs, q, lap, clr)
-
-    def _residuals(self, xs, q, p12, laps, clrs):
-        lap_g, clr_g = np.meshgrid(laps, clrs, indexing='ij')
-        pred = self._predict(xs[None, None, :], q[None, None, :], lap_g[..., None],
-                             clr_g[..., None])
-        return np.mean((pred - p12[None, None, :]) ** 2, axis=2), lap_g, clr_g
-
     def estimate(self, xs_m, q_m3_s, p12_pa) -> HealthEstimate:
         xs, q, p12 = (np.asarray(a, dtype=float).ravel() for a in (xs_m, q_m3_s, p12_pa))
         ok = np.isfinite(xs) & np.isfinite(q) & np.isfinite(p12)
@@ -164,7 +153,9 @@ class InServiceEstimator:
         # 1. coarse grid: the basin of the global minimum
         laps = np.linspace(l0, l1, self.coarse)
         clrs = np.linspace(c0, c1, self.coarse)
-        mse, lg, cg = self._residuals(xs, q, p12, laps, clrs)
+        lap_g, clr_g = np.meshgrid(laps, clrs, indexing='ij')
+        pred = self.model(xs[None, None, :], q[None, None, :], lap_g[..., None], clr_g[..., None])
+        mse = np.mean((pred - p12[None, None, :]) ** 2, axis=2)
         i, j = np.unravel_index(np.argmin(mse), mse.shape)
         # 2. Levenberg-Marquardt from there, in micrometres, inside the swept ranges
         lo, hi = np.array([l0, c0]) * 1e6, np.array([l1, c1]) * 1e6
@@ -172,7 +163,7 @@ class InServiceEstimator:
         scale = max(float(np.sqrt(np.mean(p12 ** 2))), 1e3)
 
         def resid(v):
-            return (self._predict(xs, q, v[0] * 1e-6, v[1] * 1e-6) - p12) / scale
+            return (self.model(xs, q, v[0] * 1e-6, v[1] * 1e-6) - p12) / scale
 
         r = resid(x)
         cost = float(r @ r)
@@ -206,8 +197,8 @@ class InServiceEstimator:
         except np.linalg.LinAlgError:
             cov = np.full((2, 2), np.inf)
         std = np.sqrt(np.abs(np.diag(cov))) * 1e-6
-        nominal = self._predict(xs, q, self.params.overlap_supply_m,
-                                self.params.radial_clearance_m) - p12
+        nominal = self.model(xs, q, self.params.overlap_supply_m,
+                             self.params.radial_clearance_m) - p12
         return HealthEstimate(radial_clearance_m=float(x[1] * 1e-6),
                               radial_clearance_std_m=float(std[1]),
                               overlap_m=float(x[0] * 1e-6), overlap_std_m=float(std[0]),
