@@ -185,21 +185,19 @@ def classify(est: HealthEstimate, limits: HealthThresholds) -> tuple[int, str]:
         return OK, (f'consistent with the nominal valve (its residual {ratio:.1f}x the best '
                     f'fit\'s, limit {limits.anomaly_ratio:g}x); {fit}')
     if est.beyond:
-        pe = limits.evidence_probability
-        b = est.beyond
-        if b['clearance_error'] >= pe:
-            return ERROR, (f'radial clearance beyond {limits.clearance_error_m * 1e6:g} um '
-                           f'(probability {b["clearance_error"]:.2f}): replace the valve; {fit}')
-        if b['overlap_error'] >= pe:
-            return ERROR, (f'overlap below {limits.overlap_error_m * 1e6:g} um (probability '
-                           f'{b["overlap_error"]:.2f}): metering edges worn, replace the valve; '
-                           f'{fit}')
-        if b['clearance_warn'] >= pe:
-            return WARN, (f'radial clearance beyond {limits.clearance_warn_m * 1e6:g} um '
-                          f'(probability {b["clearance_warn"]:.2f}): plan maintenance; {fit}')
-        if b['overlap_warn'] >= pe:
-            return WARN, (f'overlap below {limits.overlap_warn_m * 1e6:g} um (probability '
-                          f'{b["overlap_warn"]:.2f}): plan maintenance; {fit}')
+        for key, level, what, limit, action in (
+                ('clearance_error', ERROR, 'radial clearance beyond', limits.clearance_error_m,
+                 'replace the valve'),
+                ('overlap_error', ERROR, 'overlap below', limits.overlap_error_m,
+                 'metering edges worn, replace the valve'),
+                ('clearance_warn', WARN, 'radial clearance beyond', limits.clearance_warn_m,
+                 'plan maintenance'),
+                ('overlap_warn', WARN, 'overlap below', limits.overlap_warn_m,
+                 'plan maintenance')):
+            p = est.beyond[key]
+            if p >= limits.evidence_probability:
+                return level, (f'{what} {limit * 1e6:g} um (probability {p:.2f}): {action}; '
+                               f'{fit}')
         return WARN, (f'valve deviates from nominal (its residual {ratio:.1f}x the best fit\'s) '
                       f'but the data do not pin the wear beyond a limit: run a valve test; {fit}')
     if est.radial_clearance_m >= limits.clearance_error_m:
