@@ -129,23 +129,15 @@ class HealthReport:
 def _wear_items(est: HealthEstimate, level: int, text: str, limits: HealthThresholds,
                 stamp_ns: int) -> dict:
     """Clearance and overlap items of a wear estimate, each with its own level."""
+    extra = [(n, *est.extra[n]) for n in ITEMS if n in est.extra]
     if est.mismatch:
         why = f'cannot be assessed: {est.mismatch}'
-        out = {n: Item(n, float(v), float(s), CANNOT_ASSESS, why, est.method, stamp_ns)
-               for n, v, s in (('radial_clearance_m', est.radial_clearance_m,
-                                est.radial_clearance_std_m),
-                               ('overlap_supply_m', est.overlap_m, est.overlap_std_m))}
-        for n in ITEMS:
-            if n in est.extra:
-                v, s = est.extra[n]
-                out[n] = Item(n, float(v), float(s), CANNOT_ASSESS, why, est.method, stamp_ns)
-        return out
-    out = {}
-    for n in ITEMS:
-        if n in est.extra:
-            v, s = est.extra[n]
-            lv, why = classify_fault(n, v, s, limits)
-            out[n] = Item(n, float(v), float(s), lv, why, est.method, stamp_ns)
+        return {n: Item(n, float(v), float(s), CANNOT_ASSESS, why, est.method, stamp_ns)
+                for n, v, s in [('radial_clearance_m', est.radial_clearance_m,
+                                 est.radial_clearance_std_m),
+                                ('overlap_supply_m', est.overlap_m, est.overlap_std_m)] + extra}
+    out = {n: Item(n, float(v), float(s), *classify_fault(n, v, s, limits), est.method, stamp_ns)
+           for n, v, s in extra}
     for name, v, s, warn, err, sign in (
             ('radial_clearance_m', est.radial_clearance_m, est.radial_clearance_std_m,
              limits.clearance_warn_m, limits.clearance_error_m, 1.0),
@@ -164,6 +156,14 @@ def _wear_items(est: HealthEstimate, level: int, text: str, limits: HealthThresh
             why = text
         out[name] = Item(name, float(v), float(s), lv, why, est.method, stamp_ns)
     return out
+
+
+def _load(make) -> tuple:
+    """``(make(), '')``, or ``(None, why)`` where it fails (``why`` on one line)."""
+    try:
+        return make(), ''
+    except (OSError, ValueError) as exc:  # SurrogateError is a ValueError too
+        return None, ' '.join(str(exc).split())
 
 
 class Job:
@@ -205,27 +205,17 @@ class MonitorCore:
         self.settle_s = float(settle_s)
         self.in_service = (in_service if in_service is not None
                            else InServiceEstimator(params, limits=limits))
-        self.valve_test_error = self.faults_error = ''
+        self.valve_test_error = self.faults_error = self.valve_fit_error = ''
         if valve_test == 'default':
-            try:
-                valve_test = ValveTestEstimator(params)
-            except (OSError, ValueError) as exc:  # SurrogateError is a ValueError too
-                valve_test, self.valve_test_error = None, ' '.join(str(exc).split())
+            valve_test, self.valve_test_error = _load(lambda: ValveTestEstimator(params))
         self.valve_test = valve_test
         if faults == 'default':
-            try:
-                from eha_ros.health.preflight import load_faults
-                faults = load_faults()
-            except (OSError, ValueError) as exc:
-                faults, self.faults_error = None, ' '.join(str(exc).split())
+            from eha_ros.health.preflight import load_faults
+            faults, self.faults_error = _load(load_faults)
         self.faults = faults
-        self.valve_fit_error = ''
         if valve_fit == 'default':
-            try:
-                from eha_ros.health.valve_fit import ValveFitEstimator
-                valve_fit = ValveFitEstimator(params)
-            except (OSError, ValueError) as exc:
-                valve_fit, self.valve_fit_error = None, ' '.join(str(exc).split())
+            from eha_ros.health.valve_fit import ValveFitEstimator
+            valve_fit, self.valve_fit_error = _load(lambda: ValveFitEstimator(params))
         self.valve_fit = valve_fit
         self.readings = []            # the bench's readings of the conditions in a test
         self.procedure = 'reference'
@@ -412,8 +402,8 @@ class MonitorCore:
         record['command_a'] = preflight_command(n, PREFLIGHT_TICK_S, self.params.current_limit_a)
         if conditions is None:
             from eha_ros.physics.bench import load_bench, true_conditions
-            c = true_conditions(self.params, load_bench())
-            conditions = dataclasses.replace(c, assumed=True)
+            conditions = dataclasses.replace(true_conditions(self.params, load_bench()),
+                                             assumed=True)
         est = self.faults.estimate(record, conditions)
         mismatch, note = est.mismatch, est.note
         items = {}
