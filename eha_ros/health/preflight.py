@@ -131,12 +131,10 @@ def preflight_features(a: dict) -> np.ndarray:
            a['flapper_position_m'], a['p12_pa'], a['jack_position_m'], a['jack_velocity_m_s']]
     parts = [np.asarray(s[:nb * _BIN], dtype=float).reshape(nb, _BIN).mean(axis=1)
              for s in sig]
-    for k in _EDGES:
-        parts.append(np.asarray(a['spool_position_m'][k:k + 5], dtype=float))
-        parts.append(np.asarray(a['flapper_position_m'][k:k + 5], dtype=float))
-    for k in _EDGES:
-        parts.append(np.asarray(a['p12_pa'][k:k + _RING], dtype=float))
-        parts.append(np.asarray(a['jack_velocity_m_s'][k:k + _RING], dtype=float))
+    parts += [np.asarray(a[name][k:k + n], dtype=float)
+              for n, names in ((5, ('spool_position_m', 'flapper_position_m')),
+                               (_RING, ('p12_pa', 'jack_velocity_m_s')))
+              for k in _EDGES for name in names]
     return np.concatenate(parts)
 
 
@@ -202,6 +200,11 @@ class Subspace:
         return self.scale * np.sqrt(0.5 * (d2 + r2 / self.residual_ms))
 
 
+def _beyond(u, scales) -> np.ndarray:
+    """Per row, the largest distance of an estimate ``u`` outside ``[0, 1]`` in ``scales``."""
+    return np.max(np.maximum(0.0, np.maximum(-u, u - 1.0)) / scales, axis=1)
+
+
 @dataclasses.dataclass
 class NetEnvelope:
     """The envelope test by a network: a multilayer perceptron (``silu``, which extrapolates
@@ -217,9 +220,8 @@ class NetEnvelope:
     scale: float = 1.0
 
     def score(self, z) -> np.ndarray:
-        u = mlp_forward(self.weights, np.atleast_2d(z), 'silu')
-        return self.scale * np.max(np.maximum(0.0, np.maximum(-u, u - 1.0)) / self.scales,
-                                   axis=1)
+        return self.scale * _beyond(mlp_forward(self.weights, np.atleast_2d(z), 'silu'),
+                                    self.scales)
 
 
 @dataclasses.dataclass
@@ -250,8 +252,7 @@ class OodModel:
     net: NetEnvelope | None = None
 
     def envelope(self, z) -> np.ndarray:
-        u = np.atleast_2d(z) @ self.weights[:-1] + self.weights[-1]
-        return np.max(np.maximum(0.0, np.maximum(-u, u - 1.0)) / self.scales, axis=1)
+        return _beyond(np.atleast_2d(z) @ self.weights[:-1] + self.weights[-1], self.scales)
 
     def score(self, z) -> np.ndarray:
         tests = [self.envelope(z)] + [t.score(z) for t in self.subspaces]
@@ -293,11 +294,6 @@ class FaultModel:
         """Out-of-distribution score of input rows ``x``."""
         return self.ood.score(self.standardise(x))
 
-    def outside_service(self, c: Conditions) -> list:
-        """One phrase per measured condition outside the service envelope the network was
-        trained over (``meta['service']``)."""
-        return outside_ranges(self.meta['service'], c)
-
     def estimate(self, record: dict, conditions: Conditions) -> FaultEstimate:
         """Estimate from one pre-flight record (see :func:`preflight_features`) and the test
         conditions the bench measured (see the module on ``mismatch`` and ``note``)."""
@@ -319,7 +315,8 @@ class FaultModel:
         else:
             mu, sd = (a[0] for a in self.predict_normalised(x[None, :]))
             score = float(self.ood_score(x[None, :])[0])
-            reasons = self.outside_service(conditions)
+            # one phrase per measured condition outside the envelope trained over
+            reasons = outside_ranges(self.meta['service'], conditions)
         limit = float(self.ood.limit)
         if score > limit:
             reasons.insert(0, f'the pre-flight check lies outside what the network was trained '
