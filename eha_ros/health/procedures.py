@@ -184,14 +184,16 @@ class ValveTestProcedure(Procedure):
             rng = np.random.default_rng([int(point.seed), 0x9E55])
             curves = []
             settled = self.spec.valve_test_procedure == 'settled'
+
+            def noisy(p12):   # the relative pressure noise, drawn for every pressure
+                if not self.spec.pressure_noise:
+                    return p12
+                return p12 * (1.0 + self.spec.pressure_noise * rng.standard_normal(p12.shape))
             for q in sch['flows_m3_s']:
                 if not settled:   # the reference's: P12 at the end of the hold
-                    p12 = np.asarray(transient_map(grid, q, params=p, t_end_s=sch['hold_s'],
-                                                   dt_s=c.dt_s)['p12_pa'], dtype=float)
-                    if self.spec.pressure_noise:
-                        p12 = p12 * (1.0 + self.spec.pressure_noise
-                                     * rng.standard_normal(p12.shape))
-                    curves.append((q, grid, p12))
+                    curves.append((q, grid, noisy(np.asarray(transient_map(
+                        grid, q, params=p, t_end_s=sch['hold_s'], dt_s=c.dt_s)['p12_pa'],
+                        dtype=float))))
                     continue
                 # settled: the plant's 1 ms samples of the hold's last two READING_S windows;
                 # the reading is the last window's mean, the settle check the one before
@@ -199,10 +201,7 @@ class ValveTestProcedure(Procedure):
                 n_win = int(round(READING_S / 1e-3))
                 p1, p2 = stepped_trace(grid, q, n_hold, int(round(1e-3 / c.dt_s)), p,
                                        c.dt_s, first=n_hold - 2 * n_win)
-                p12 = p1 - p2
-                if self.spec.pressure_noise:
-                    p12 = p12 * (1.0 + self.spec.pressure_noise * rng.standard_normal(
-                        p12.shape))
+                p12 = noisy(p1 - p2)
                 curves.append((q, grid, np.array([window_mean(v) for v in p12[n_win:].T]),
                                np.array([window_mean(v) for v in p12[:n_win].T])))
             nominal = replace(default_params(), noise_std_a=0.0)
@@ -210,7 +209,7 @@ class ValveTestProcedure(Procedure):
             n_ticks = int(round(sch['hold_s'] * 1e3)) * sch['n_points'] * len(curves)
             cond = mean_conditions(measure_conditions(p, point.seed, n_ticks + 1,
                                                       load_bench())[1:])
-            if self.spec.valve_test_procedure == 'settled':
+            if settled:
                 est = ValveFitEstimator(nominal).estimate(curves, cond)
                 k, k_std = est.extra['valve_degradation']
                 leak, leak_std = est.extra['leakage_coeff_m3_s_pa']
