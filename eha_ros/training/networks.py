@@ -33,8 +33,8 @@ import time
 
 import numpy as np
 
-__all__ = ['ACTIVATIONS', 'make_torch_mlp', 'train_lm', 'train_adam_lbfgs',
-           'fit_network', 'minmax', 'map_split', 'ALGORITHMS', 'Split', 'LMSettings',
+__all__ = ['ACTIVATIONS', 'make_torch_mlp', 'train_lm', 'train_adam_lbfgs', 'fit_network',
+           'history_stops', 'minmax', 'map_split', 'ALGORITHMS', 'Split', 'LMSettings',
            'AdamLBFGSSettings']
 
 
@@ -146,10 +146,7 @@ def make_torch_mlp(*, d_in: int, d_hidden: list, d_out: int = 1, seed: int = 0,
         def __init__(self, *, d_in, d_hidden, d_out):
             super().__init__()
             self.skip = bool(skip)
-            self.config = {'d_in': int(d_in), 'd_hidden': [int(h) for h in d_hidden],
-                           'd_out': int(d_out), 'activation': activation,
-                           'skip': bool(skip)}
-            self.sizes = [self.config['d_in'], *self.config['d_hidden'], self.config['d_out']]
+            self.sizes = [int(d_in), *(int(h) for h in d_hidden), int(d_out)]
             self.n_mlp = sum(do * di + do for di, do in zip(self.sizes[:-1], self.sizes[1:]))
             self.theta = torch.nn.Parameter(torch.zeros(
                 self.n_mlp + (self.sizes[0] * self.sizes[-1] if self.skip else 0),
@@ -396,6 +393,12 @@ def train_adam_lbfgs(model, data: Split, settings: AdamLBFGSSettings = AdamLBFGS
     hist.update(adam_steps=done_adam, lbfgs_iters=done_lbfgs, adam_time_s=t_adam,
                 time_s=time.perf_counter() - t0)
     return hist
+
+
+def history_stops(hist: dict) -> dict:
+    """How a training stopped, for an artefact's meta: ``stop``, ``epochs``, ``adam_steps``
+    and ``lbfgs_iters`` of its history (``None`` where the algorithm has none)."""
+    return {k: hist.get(k) for k in ('stop', 'epochs', 'adam_steps', 'lbfgs_iters')}
 
 
 def minmax(a) -> np.ndarray:

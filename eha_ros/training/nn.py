@@ -37,7 +37,7 @@ from eha_ros.physics.maps import fluid_hash, transient_map
 from eha_ros.surrogates.nn import (ASINH, INPUT_NAMES, INPUT_UNITS, SPOOL_GRID_DENSITY,
                                    fit_inputs, fit_output, mlp_numpy, pack, transform_inputs)
 from eha_ros.training.database import Database, get_database, heldout_maps, map_errors
-from eha_ros.training.networks import Split, fit_network, map_split
+from eha_ros.training.networks import Split, fit_network, history_stops, map_split
 
 __all__ = ['network_map_errors', 'db_maps', 'train_fluid_network', 'build_artefacts',
            'NN_SETTINGS', 'NN2_SETTINGS']
@@ -149,6 +149,7 @@ def train_fluid_network(*, n_inputs: int = 4, settings: dict | None = None,
             *(_points(db, val, weights=True) for db in dbs.values())))
         split = {'train_maps': len(train), 'val_pairs': val, 'test_pairs': test}
         eval_sets = {f'{name}_test': db_maps(db, test) for name, db in dbs.items()}
+        val_maps = [m for db in dbs.values() for m in db_maps(db, val)]
         for name, db in dbs.items():
             q_max = float(np.max(np.abs(db.q_m3_s)))
             eval_sets[f'offgrid_q{q_max:.1e}'] = heldout_maps(
@@ -167,18 +168,15 @@ def train_fluid_network(*, n_inputs: int = 4, settings: dict | None = None,
         split = {'train_flows': int(train_q.size), 'val_flows': val_q.tolist(),
                  'test_flows': test_q.tolist()}
         eval_sets = {'DB5_test': db_maps(sub(test_q), [(0, 0)])}
+        val_maps = db_maps(sub(val_q), [(0, 0)])
         q_mid = 0.5 * (db.q_m3_s[1:] + db.q_m3_s[:-1])[::4]
         fresh = transient_map(db.xs_m[:, None], q_mid[None, :], params=p)['p12_pa']
         eval_sets['offgrid_flows'] = [(db.xs_m, q_mid, p.overlap_supply_m,
                                        p.radial_clearance_m, fresh)]
-    if n_inputs == 4:
-        val_maps = [m for db in dbs.values() for m in db_maps(db, val)]
-    else:
-        val_maps = db_maps(sub(val_q), [(0, 0)])
     sources = list(range(n_inputs))
     results = {}
+    weighted = st['map_weighting']
     for alg in algorithms:
-        weighted = st['map_weighting']
         data, hist, wall, _ = _fit_model(
             Split(raw_tr, y_tr, raw_val, y_val, w_tr if weighted else None,
                   w_val if weighted else None), (sources, st['transforms'], scales),
@@ -213,18 +211,11 @@ def train_fluid_network(*, n_inputs: int = 4, settings: dict | None = None,
                               if st['map_weighting'] else
                               'mean squared error of the normalised output'),
                      'time_s': round(res['wall_s'], 1), 'threads': threads,
-                     'stop': res['hist'].get('stop'),
-                     'epochs': res['hist'].get('epochs'),
-                     'adam_steps': res['hist'].get('adam_steps'),
-                     'lbfgs_iters': res['hist'].get('lbfgs_iters'),
-                     'databases': st['databases'],
+                     **history_stops(res['hist']), 'databases': st['databases'],
                      'database_hashes': {k: db.meta['fluid_hash'] for k, db in dbs.items()},
                      'split': split},
         'comparison': {alg: {'time_s': round(r['wall_s'], 1), 'val': r['val'],
-                             'errors': r['errors'], 'stop': r['hist'].get('stop'),
-                             'epochs': r['hist'].get('epochs'),
-                             'adam_steps': r['hist'].get('adam_steps'),
-                             'lbfgs_iters': r['hist'].get('lbfgs_iters'),
+                             'errors': r['errors'], **history_stops(r['hist']),
                              'settings': st[alg]}
                        for alg, r in results.items()},
         'winner_rule': 'lower mean relative map error on the validation maps',

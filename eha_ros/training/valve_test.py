@@ -29,7 +29,7 @@ from eha_ros.health.valve_test import (OUTPUT_NAMES, OUTPUT_UNITS, DiagnosticMod
 from eha_ros.physics import PlantParams, default_params
 from eha_ros.physics.maps import WEAR_RANGES, fluid_hash
 from eha_ros.training.database import Database, get_database
-from eha_ros.training.networks import Split, fit_network, map_split, minmax
+from eha_ros.training.networks import Split, fit_network, history_stops, map_split, minmax
 
 __all__ = ['DIAG_SETTINGS', 'DIAG_THESIS_SETTINGS', 'add_noise', 'curves_from_maps',
            'wear_errors', 'train_diagnostic', 'build_artefact']
@@ -68,14 +68,12 @@ def add_noise(p12, level: float, rng: np.random.Generator, noise: str = 'relativ
 def curves_from_maps(db: Database, pairs):
     """Curves ``(n, 133)``, flows ``(n,)``, true wear ``(n, 2)`` (clearance, overlap) and map
     index ``(n,)`` for the maps ``pairs`` (``(i_overlap, j_clearance)``) of ``db``."""
-    curves, qs, wear, idx = [], [], [], []
-    for m, (i, j) in enumerate(pairs):
-        curves.append(db.p12_pa[:, :, i, j].T)
-        qs.append(db.q_m3_s)
-        wear.append(np.tile([db.clearance_m[j], db.overlap_m[i]], (db.q_m3_s.size, 1)))
-        idx.append(np.full(db.q_m3_s.size, m))
-    return (np.concatenate(curves), np.concatenate(qs), np.concatenate(wear),
-            np.concatenate(idx))
+    n_q = db.q_m3_s.size
+    return (np.concatenate([db.p12_pa[:, :, i, j].T for i, j in pairs]),
+            np.tile(db.q_m3_s, len(pairs)),
+            np.concatenate([np.tile([db.clearance_m[j], db.overlap_m[i]], (n_q, 1))
+                            for i, j in pairs]),
+            np.repeat(np.arange(len(pairs)), n_q))
 
 
 def _ranges():
@@ -147,9 +145,8 @@ def train_diagnostic(*, settings: dict | None = None, params: PlantParams | None
                        for _ in range(st['noise_copies'])]
     x_tr = np.concatenate([np.concatenate([c, q_tr[:, None]], axis=1) for c in copies])
     y_tr = np.tile(w_tr, (len(copies), 1))
-    c_va_noisy = add_noise(c_va, st['noise_level'], rng, st['noise'])
     x_va = np.concatenate([np.concatenate([c, q_va[:, None]], axis=1)
-                           for c in (c_va, c_va_noisy)])
+                           for c in (c_va, add_noise(c_va, st['noise_level'], rng, st['noise']))])
     y_va = np.tile(w_va, (2, 1))
     alg = st['algorithm']
     weights, in_norm, out_norm, hist, wall = _train_one(
@@ -173,10 +170,7 @@ def train_diagnostic(*, settings: dict | None = None, params: PlantParams | None
                      'database_hash': db.meta['fluid_hash'],
                      'noise_augmentation': {'copies': st['noise_copies'],
                                             'level': st['noise_level'], 'model': st['noise']},
-                     'time_s': round(wall, 1), 'threads': threads,
-                     'stop': hist.get('stop'), 'epochs': hist.get('epochs'),
-                     'adam_steps': hist.get('adam_steps'),
-                     'lbfgs_iters': hist.get('lbfgs_iters'),
+                     'time_s': round(wall, 1), 'threads': threads, **history_stops(hist),
                      'split': {'train_maps': len(train), 'val_pairs': val,
                                'test_pairs': test}},
         'noise_model': 'relative: P (1 + level n), n ~ N(0, 1) per point',
