@@ -162,16 +162,12 @@ def genetic_fit(xs_m, q_m3_s, p12_pa, xs_max_m: float, settings: GASettings | No
     """
     s = settings if settings is not None else GASettings()
     s.check()
-    lb = np.asarray(lb, dtype=float)
-    ub = np.asarray(ub, dtype=float)
-    x0 = np.asarray(x0, dtype=float)
+    lb, ub, x0 = (np.asarray(a, dtype=float) for a in (lb, ub, x0))
     if lb.shape != (8,) or ub.shape != (8,) or x0.shape != (8,) or np.any(lb > ub):
         raise SurrogateError('GA needs 8 initial coefficients and bounds with lb <= ub')
     if np.any(x0 < lb) or np.any(x0 > ub):
         raise SurrogateError('GA initial coefficients lie outside the bounds')
-    xs = np.ravel(np.asarray(xs_m, dtype=float))
-    q = np.ravel(np.asarray(q_m3_s, dtype=float))
-    p = np.ravel(np.asarray(p12_pa, dtype=float))
+    xs, q, p = (np.ravel(np.asarray(a, dtype=float)) for a in (xs_m, q_m3_s, p12_pa))
     if not (xs.size == q.size == p.size) or xs.size == 0:
         raise SurrogateError('GA training points and values must have the same, non-zero size')
     t0 = time.perf_counter()
@@ -209,6 +205,11 @@ def evolve(fitness, z0, zlb, zub, s: GASettings):
     z0, zlb, zub = (np.asarray(a, dtype=float) for a in (z0, zlb, zub))
     dim = z0.size
     free = zub > zlb
+
+    def inside(z):   # clipped to the bounds, pinned genes at their value
+        z = np.clip(z, zlb, zub)
+        z[:, ~free] = zlb[~free]
+        return z
     # first population: x0, Gaussian cloud around it, uniform across the bounds
     n = s.population
     n_uni = int(round(s.init_uniform_fraction * (n - 1)))
@@ -216,8 +217,7 @@ def evolve(fitness, z0, zlb, zub, s: GASettings):
     pop[0] = z0
     pop[1:n - n_uni] = z0 + s.init_sigma * rng.standard_normal((n - 1 - n_uni, dim))
     pop[n - n_uni:] = zlb + (zub - zlb) * rng.random((n_uni, dim))
-    pop = np.clip(pop, zlb, zub)
-    pop[:, ~free] = zlb[~free]
+    pop = inside(pop)
     fit = fitness(pop)
     evals = n
     history = [fit.min()]
@@ -241,9 +241,7 @@ def evolve(fitness, z0, zlb, zub, s: GASettings):
         child[keep] = pa[keep]
         # Gaussian mutation, each free gene with probability mutation_rate
         mut = (rng.random((n_child, dim)) < s.mutation_rate) & free
-        child = child + mut * (sigma * rng.standard_normal((n_child, dim)))
-        child = np.clip(child, zlb, zub)
-        child[:, ~free] = zlb[~free]
+        child = inside(child + mut * (sigma * rng.standard_normal((n_child, dim))))
         child_fit = fitness(child)
         evals += n_child
         pop = np.concatenate([elite, child])
@@ -275,8 +273,7 @@ def gradient_fit(xs_m, q_m3_s, p12_pa, xs_max_m: float, x0=THESIS_INITIAL, lb=TH
     """
     from scipy.optimize import least_squares
 
-    lb = np.asarray(lb, dtype=float)
-    ub = np.asarray(ub, dtype=float)
+    lb, ub = np.asarray(lb, dtype=float), np.asarray(ub, dtype=float)
     x0 = np.clip(np.asarray(x0, dtype=float), lb, ub)
     free = ub > lb
     wx = np.ravel(np.asarray(xs_m, dtype=float)) / XS_REF_M
