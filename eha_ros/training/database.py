@@ -65,10 +65,6 @@ class DatabaseSpec:
                else np.linspace(*WEAR_RANGES['radial_clearance_m'], self.n_clearance))
         return xs, q, lap, clr
 
-    @property
-    def points(self) -> int:
-        return self.n_xs * self.n_q * self.n_overlap * self.n_clearance
-
 
 DATABASES = {s.name: s for s in (
     DatabaseSpec('DB1', 133, 5, 5, 5, FLOW_MAX_M3_S, 'lookup table, genetic algorithm'),
@@ -126,8 +122,7 @@ def build_database(name: str, params: PlantParams | None = None, progress: bool 
     t0 = time.perf_counter()
     for k in range(0, n_maps, per_call):
         chunk = pairs[k:k + per_call]
-        li = np.array([i for i, _ in chunk])
-        cj = np.array([j for _, j in chunk])
+        li, cj = np.array(chunk).T
         r = transient_map(xs[:, None, None], q[None, :, None], lap[li][None, None, :],
                           clr[cj][None, None, :], params=p, t_end_s=t_end_s, dt_s=dt_s)
         for m, (i, j) in enumerate(chunk):
@@ -239,11 +234,9 @@ def random_wear(n_maps: int, rng: np.random.Generator, wear=None):
     """``(overlap_m, clearance_m)`` arrays: ``n_maps`` pairs drawn uniformly inside
     :data:`WEAR_RANGES` from ``rng`` (overlap first), or the given ``wear`` pairs."""
     if wear is not None:
-        lap, clr = (np.array(v, dtype=float) for v in zip(*wear))
-        return lap, clr
-    lap = rng.uniform(*WEAR_RANGES['overlap_m'], n_maps)
-    clr = rng.uniform(*WEAR_RANGES['radial_clearance_m'], n_maps)
-    return lap, clr
+        return tuple(np.array(v, dtype=float) for v in zip(*wear))
+    return (rng.uniform(*WEAR_RANGES['overlap_m'], n_maps),
+            rng.uniform(*WEAR_RANGES['radial_clearance_m'], n_maps))
 
 
 def maps_at(xs_m, q_m3_s, overlap_m, clearance_m, params: PlantParams):
