@@ -95,10 +95,14 @@ def sample_points(n: int, rng: np.random.Generator, p: PlantParams):
     s = np.concatenate([rng.uniform(-s_max, s_max, h), rng.uniform(-20e-6, 20e-6, n - h)])
     dp = np.concatenate([np.exp(rng.uniform(0.0, math.log(DP_MAX_PA), h)),
                          rng.uniform(0.0, DP_MAX_PA, n - h)])
-    lo, hi = valid_range(p)['radial_clearance_m']
-    c = np.exp(rng.uniform(math.log(lo), math.log(hi), n))
+    c = _log_uniform_clearance(n, rng, p)
     perm = rng.permutation(n)
     return s[perm], dp[perm], c
+
+
+def _log_uniform_clearance(n: int, rng: np.random.Generator, p: PlantParams):
+    lo, hi = valid_range(p)['radial_clearance_m']
+    return np.exp(rng.uniform(math.log(lo), math.log(hi), n))
 
 
 def loop_points(n: int, rng: np.random.Generator, p: PlantParams):
@@ -109,9 +113,7 @@ def loop_points(n: int, rng: np.random.Generator, p: PlantParams):
     h = n // 2
     s = np.concatenate([rng.uniform(-10e-6, 10e-6, h), rng.laplace(0.0, 2e-6, n - h)])
     dp = rng.uniform(0.0, 1.1 * p.supply_pressure_pa, n)
-    lo, hi = valid_range(p)['radial_clearance_m']
-    c = np.exp(rng.uniform(math.log(lo), math.log(hi), n))
-    return s, dp, c
+    return s, dp, _log_uniform_clearance(n, rng, p)
 
 
 def null_points(n: int, rng: np.random.Generator, p: PlantParams):
@@ -124,9 +126,7 @@ def null_points(n: int, rng: np.random.Generator, p: PlantParams):
     lap_lo, lap_hi = valid_range(p)['overlap_m']
     s = -rng.uniform(lap_lo, lap_hi, n) + rng.laplace(0.0, 1.5e-6, n)
     dp = rng.uniform(0.0, 1.1 * p.supply_pressure_pa, n)
-    lo, hi = valid_range(p)['radial_clearance_m']
-    c = rng.uniform(lo, hi, n)
-    return s, dp, c
+    return s, dp, rng.uniform(*valid_range(p)['radial_clearance_m'], n)
 
 
 def edge_errors(surrogate, n: int = 20000, seed: int = 1, params: PlantParams | None = None):
