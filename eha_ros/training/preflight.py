@@ -489,13 +489,12 @@ def fit_ood(model: FaultModel, x, u, xv, uv, x_limit, settings: dict | None = No
     net_meta = None
     if s.get('ood_net'):   # the same envelope, estimated by a network
         weights = _train_envelope_net(z, u, s['ood_net'])
-        err = np.abs(mlp_forward(weights, zv, 'silu') - uv)
-        ood.net = NetEnvelope(weights, np.quantile(err, 0.99, axis=0))
+        res = mlp_forward(weights, zv, 'silu') - uv
+        ood.net = NetEnvelope(weights, np.quantile(np.abs(res), 0.99, axis=0))
         ood.net.scale = ood.limit / float(np.quantile(ood.net.score(zl), s['ood_quantile'])
                                           * s['ood_margin'])
         net_meta = dict(s['ood_net'], activation='silu', scale=ood.net.scale,
-                        sigma=dict(zip(names, np.round(np.std(
-                            mlp_forward(weights, zv, 'silu') - uv, axis=0), 4).tolist())))
+                        sigma=dict(zip(names, np.round(np.std(res, axis=0), 4).tolist())))
     model.ood = ood
     held = ood.score(zl)
     model.meta['ood'] = {
