@@ -305,11 +305,9 @@ class MonitorCore:
             return []
         if len(curve) < n_points:
             return [Job(self, 'valve-test-incomplete', t_ns, (q, len(curve), n_points))]
-        pts = [curve[k] for k in sorted(curve)]
-        done = (q, np.array([x for x, _, _ in pts]), np.array([p for _, p, _ in pts]))
-        if self.procedure == 'settled':
-            done += (np.array([b for _, _, b in pts]),)
-        self.curves_done.append(done)
+        # spool positions, readings and (settled test) the readings before, point by point
+        cols = [np.array(c) for c in zip(*(curve[k] for k in sorted(curve)))]
+        self.curves_done.append((q, *cols[:3 if self.procedure == 'settled' else 2]))
         return [Job(self, 'valve-test', t_ns, (self.procedure, list(self.curves_done),
                                                self._conditions()))]
 
@@ -326,10 +324,8 @@ class MonitorCore:
                           float(s.jack_position_m), float(s.jack_velocity_m_s))
         if not s.valve_test_point_end:
             return []
-        n = k + 1
-        rec = dict(self.record)
-        self.record = {}
-        return [Job(self, 'preflight', t_ns, (n, rec, self._conditions()))]
+        rec, self.record = self.record, {}
+        return [Job(self, 'preflight', t_ns, (k + 1, rec, self._conditions()))]
 
     # --- estimates -------------------------------------------------------------------------
     def make_report(self, job: Job) -> HealthReport:

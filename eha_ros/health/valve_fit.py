@@ -202,8 +202,7 @@ def _points(curves, cond: Conditions):
                for c in curves if len(c) > 3 and c[3] is not None]
     noise_rel = 0.0
     if checked:
-        end = np.concatenate([e for e, _ in checked])
-        before = np.concatenate([b for _, b in checked])
+        end, before = (np.concatenate(a) for a in zip(*checked))
         ok = np.isfinite(before) & (np.abs(end) > 10 * SETTLED_ABS_PA)
         if ok.any():
             rel = np.abs(end[ok] - before[ok]) / np.abs(end[ok])
@@ -315,10 +314,6 @@ class ValveFitEstimator:
         self.calibration = load_calibration() if calibration == 'default' else calibration
         self.laminar_prior = laminar_prior
 
-    def condition_std(self) -> np.ndarray:
-        """Standard deviation of each measured condition's error (uniform bias)."""
-        return np.array([self.bench.sensors[k].bias / np.sqrt(3.0) for k in CONDITIONS])
-
     def estimate(self, curves, conditions: Conditions | None) -> HealthEstimate:
         """``curves``: ``(q_m3_s, xs_m, p12_pa[, p12_before_pa])`` per flow: each point's
         reading (for the settled test the mean over the last ``READING_S`` of the hold) and,
@@ -354,10 +349,11 @@ class ValveFitEstimator:
         f['sensitivity'] = {k: to_item @ v[pick] for k, v in f['sensitivity'].items()}
         var = np.abs(np.diag(cov))
         var[2] += ((1.0 - theta[2]) * edge_std / edge_mean) ** 2   # Cd w unit to unit
-        cstd = self.condition_std()
         if conditions.assumed:   # the whole service range is possible
             cstd = np.array([(hi - lo) / np.sqrt(12.0)
                              for lo, hi in (self.bench.service[k] for k in CONDITIONS)])
+        else:   # each measured condition's error: its sensor's bias, uniform
+            cstd = np.array([self.bench.sensors[k].bias / np.sqrt(3.0) for k in CONDITIONS])
         for j, name in enumerate(CONDITIONS):
             if name in f['sensitivity']:
                 var += (f['sensitivity'][name] * cstd[j]) ** 2
