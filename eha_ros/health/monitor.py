@@ -71,7 +71,6 @@ ITEM_UNITS = {'radial_clearance_m': 'm', 'overlap_supply_m': 'm', 'demagnetisati
               'filter_clogging': '1', 'spool_static_friction_n': 'N',
               'jack_static_friction_n': 'N', 'offset_a': 'A', 'valve_degradation': '1',
               'leakage_coeff_m3_s_pa': 'm^3/(s Pa)'}
-_WEAR = ('radial_clearance_m', 'overlap_supply_m')
 CANNOT_ASSESS = LEVEL_CANNOT_ASSESS
 #: Severity of the levels, for the worst of several: an item that cannot be assessed ranks
 #: above OK (it is not shown healthy) and below a shown degradation.
@@ -362,10 +361,8 @@ class MonitorCore:
                       else 'settled-valve-fit' if job.data[0] == 'settled'
                       else ValveTestEstimator.method)
             return HealthReport(t, job.kind, method, ERROR, f'no estimate: {exc}')
-        if est.mismatch:
-            level, text = CANNOT_ASSESS, f'cannot be assessed: {est.mismatch}'
-        else:
-            level, text = classify(est, lim)
+        level, text = ((CANNOT_ASSESS, f'cannot be assessed: {est.mismatch}') if est.mismatch
+                       else classify(est, lim))
         if est.note:
             text = f'{text} ({est.note})'
         items = _wear_items(est, level, text, lim, t)
@@ -404,13 +401,9 @@ class MonitorCore:
         mismatch, note = est.mismatch, est.note
         items = {}
         for f in FAULTS:
-            if f.name in _WEAR:
-                continue
             v, sd = est.values[f.name], est.stds[f.name]
-            if mismatch:
-                lv, why = CANNOT_ASSESS, f'cannot be assessed: {mismatch}'
-            else:
-                lv, why = classify_fault(f.name, v, sd, self.limits)
+            lv, why = ((CANNOT_ASSESS, f'cannot be assessed: {mismatch}') if mismatch
+                       else classify_fault(f.name, v, sd, self.limits))
             if note:
                 why = f'{why} ({note})'
             items[f.name] = Item(f.name, v, sd, lv, why, method, t)
