@@ -280,14 +280,10 @@ class FaultModel:
         """Ensemble mean and standard deviation (calibrated) of the outputs in units of each
         range, for input rows ``x`` ``(n, d)`` (:func:`model_inputs`)."""
         z = self.standardise(x)
-        mus, vars_ = [], []
         k = len(FAULTS)
-        for weights in self.members:
-            o = mlp_forward(weights, z)
-            mus.append(o[:, :k])
-            vars_.append(np.exp(np.clip(o[:, k:], -30, 10)))
-        mus = np.array(mus)
-        var = np.mean(vars_, axis=0) + np.var(mus, axis=0)
+        o = np.array([mlp_forward(weights, z) for weights in self.members])
+        mus = o[:, :, :k]
+        var = np.mean(np.exp(np.clip(o[:, :, k:], -30, 10)), axis=0) + np.var(mus, axis=0)
         return mus.mean(axis=0), np.sqrt(var) * self.calibration
 
     def ood_score(self, x) -> np.ndarray:
