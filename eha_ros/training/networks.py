@@ -112,8 +112,7 @@ ACTIVATIONS = ('tanh', 'quintic')
 def _activation(torch, name):
     """``(f(z), f'(z))`` of the hidden activation ``name``."""
     if name == 'tanh':
-        def f(z):
-            return torch.tanh(z)
+        f = torch.tanh
 
         def df(z, a):
             return 1.0 - a * a

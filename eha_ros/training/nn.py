@@ -51,15 +51,14 @@ def _points(db: Database, pairs, weights: bool = False):
     squared relative errors of the maps, the reference's metric)."""
     xs, q = np.meshgrid(db.xs_m, db.q_m3_s, indexing='ij')
     xs, q = xs.ravel(), q.ravel()
-    raws, ys, ws = [], [], []
-    for i, j in pairs:
-        raws.append(np.stack([xs, q, np.full_like(xs, db.overlap_m[i]),
-                              np.full_like(xs, db.clearance_m[j])], axis=1))
-        ys.append(db.p12_pa[:, :, i, j].ravel())
-        ws.append(np.full(xs.size, 1.0 / np.sum(ys[-1] ** 2)))
-    if weights:
-        return np.concatenate(raws), np.concatenate(ys), np.concatenate(ws)
-    return np.concatenate(raws), np.concatenate(ys)
+    raw = np.concatenate([np.stack([xs, q, np.full_like(xs, db.overlap_m[i]),
+                                    np.full_like(xs, db.clearance_m[j])], axis=1)
+                          for i, j in pairs])
+    ys = [db.p12_pa[:, :, i, j].ravel() for i, j in pairs]
+    if not weights:
+        return raw, np.concatenate(ys)
+    return raw, np.concatenate(ys), np.concatenate([np.full(xs.size, 1.0 / np.sum(y ** 2))
+                                                    for y in ys])
 
 
 def network_map_errors(data, maps) -> np.ndarray:
