@@ -11,11 +11,10 @@ Model
     and :func:`eha_ros.surrogates.dnn.dnn_numpy` read.
 
 Algorithms
-    :func:`train_lm`, Levenberg-Marquardt as MATLAB's ``trainlm`` (damping ``mu`` multiplied by
-    ``mu_dec`` after a step that lowers the loss and by ``mu_inc`` until one does; ``(J'J + mu
-    I) d = J'e`` with the Jacobian formed by hand, batched, on a random subset of the training
-    points redrawn every ``resample_every`` epochs); :func:`train_adam_lbfgs`, Adam on
-    minibatches then full-batch L-BFGS.  Both minimise the (optionally weighted) mean squared
+    :func:`train_lm`, Levenberg-Marquardt as MATLAB's ``trainlm`` (``(J'J + mu I) d = J'e``
+    with the Jacobian formed by hand, batched, on a random subset of the training points; its
+    damping and stops: :class:`LMSettings`); :func:`train_adam_lbfgs`, Adam on minibatches
+    then full-batch L-BFGS.  Both minimise the (optionally weighted) mean squared
     error of the normalised outputs and keep the parameters of the best validation check.
 
 Normalisation
@@ -97,11 +96,6 @@ SETTINGS = {'lm': LMSettings, 'adam_lbfgs': AdamLBFGSSettings}
 ALGORITHMS = tuple(SETTINGS)
 
 
-def _torch():
-    import torch
-    return torch
-
-
 #: Hidden-layer activations :func:`make_torch_mlp` knows: ``tanh``, and ``quintic``, the
 #: odd polynomial ``x (15 - 10 x^2 + 3 x^4) / 8`` on [-1, 1] held at +-1 outside (twice
 #: continuously differentiable, no transcendental: what :mod:`.dnn`'s ``dnn`` kernel
@@ -138,7 +132,7 @@ def make_torch_mlp(*, d_in: int, d_hidden: list, d_out: int = 1, seed: int = 0,
     kernel reads them.  With ``skip`` the output also gets a linear term of the inputs, its
     weights ``(d_in, d_out)`` (row-major) after the last layer's in ``theta``.  Weights:
     Glorot-uniform from ``seed``, biases and skip weights zero."""
-    torch = _torch()
+    import torch
     act, dact = _activation(torch, activation)
 
     class MLP(torch.nn.Module):
@@ -221,7 +215,7 @@ def make_torch_mlp(*, d_in: int, d_hidden: list, d_out: int = 1, seed: int = 0,
 
 def _mse(model, x, y, w=None):
     """(Weighted) mean squared error; ``w`` one weight per row of ``x``."""
-    torch = _torch()
+    import torch
     model.eval()
     with torch.no_grad():
         r2 = (model(x) - y) ** 2
@@ -238,7 +232,7 @@ def train_lm(model, data: Split, settings: LMSettings = LMSettings(), *, seed: i
 
     Returns the history: ``loss``, ``val``, ``mu`` per epoch, ``epochs``, ``stop``, ``time_s``.
     """
-    torch = _torch()
+    import torch
     torch.set_num_threads(threads)
     gen = np.random.default_rng(seed)
     x, y, x_val, y_val, w_val = data.x, data.y, data.x_val, data.y_val, data.w_val
@@ -328,7 +322,7 @@ def train_adam_lbfgs(model, data: Split, settings: AdamLBFGSSettings = AdamLBFGS
     Returns the history: ``loss``, ``val`` per check, ``adam_steps``, ``lbfgs_iters``,
     ``time_s``.
     """
-    torch = _torch()
+    import torch
     torch.set_num_threads(threads)
     gen = torch.Generator().manual_seed(int(seed))
     x, y, x_val, y_val, w_val = data.x, data.y, data.x_val, data.y_val, data.w_val
@@ -425,11 +419,7 @@ def fit_network(data: Split, *, hidden, algorithm: str, seed: int, settings: dic
     if bad:
         raise ValueError(f'training settings of {algorithm}: unknown {bad[0]!r} (one of '
                          f'{", ".join(sorted(known))})')
-    torch = _torch()
-
-    def to_t(a):
-        return None if a is None else torch.as_tensor(np.ascontiguousarray(a),
-                                                      dtype=torch.float64)
+    import torch
 
     def column(a):
         if a is None:
@@ -445,8 +435,9 @@ def fit_network(data: Split, *, hidden, algorithm: str, seed: int, settings: dic
     model = make_torch_mlp(d_in=np.shape(data.x)[1], d_hidden=hidden, d_out=y_tr.shape[1],
                            seed=seed, activation=activation, skip=skip)
     train = train_lm if algorithm == 'lm' else train_adam_lbfgs
-    tensors = Split(*(to_t(a) for a in (data.x, y_tr, data.x_val, column(data.y_val), w_tr,
-                                        w_val)))
+    tensors = Split(*(None if a is None else torch.as_tensor(np.ascontiguousarray(a),
+                                                             dtype=torch.float64)
+                      for a in (data.x, y_tr, data.x_val, column(data.y_val), w_tr, w_val)))
     t0 = time.perf_counter()
     hist = train(model, tensors, SETTINGS[algorithm](**settings), seed=seed, threads=threads)
     return model, hist, time.perf_counter() - t0
