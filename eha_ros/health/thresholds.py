@@ -120,12 +120,6 @@ class HealthThresholds:
         return next((f for f in self.faults if f.name == name), None)
 
 
-def _z(probability: float) -> float:
-    """One-sided Gaussian quantile of ``probability`` (0.5 .. 0.999)."""
-    from statistics import NormalDist
-    return NormalDist().inv_cdf(probability)
-
-
 def classify_fault(name: str, value: float, std: float, limits: HealthThresholds
                    ) -> tuple[int, str]:
     """Level and reason of one pre-flight estimate: a limit counts as passed only when the
@@ -134,7 +128,8 @@ def classify_fault(name: str, value: float, std: float, limits: HealthThresholds
     lim = limits.fault(name)
     if lim is None:
         return OK, f'{name} = {value:.4g} +- {std:.2g} (no limits configured)'
-    z = _z(limits.evidence_probability)
+    from statistics import NormalDist
+    z = NormalDist().inv_cdf(limits.evidence_probability)   # one-sided Gaussian quantile
     v = abs(value) if lim.absolute else value
     low = v - z * std
     what = f'|{name}|' if lim.absolute else name
