@@ -245,10 +245,9 @@ class ValveTestEstimator:
                              else xs) for q, xs, p in curves]
         c, o = (np.array(v) for v in zip(*est))
         clr, lap = float(np.median(c)), float(np.median(o))
-        lo, hi = WEAR_RANGES['radial_clearance_m']
-        model_params = replace(self.params, radial_clearance_m=float(np.clip(clr, lo * 0.5,
-                                                                             hi * 2)),
-                               overlap_supply_m=lap, overlap_return_m=lap)
+        (l0, l1), (c0, c1) = WEAR_RANGES['overlap_m'], WEAR_RANGES['radial_clearance_m']
+        model_params = replace(self.params, overlap_supply_m=lap, overlap_return_m=lap,
+                               radial_clearance_m=float(np.clip(clr, c0 * 0.5, c1 * 2)))
         r2 = sum(float(np.sum((transient_map(xs, q, params=model_params)['p12_pa'] - p) ** 2))
                  for q, xs, p in curves)
         n = sum(p.size for _, _, p in curves)
@@ -257,7 +256,6 @@ class ValveTestEstimator:
         # the per-curve error at 1 % noise scaled by the noise the data show (measurement
         # noise biases the estimate, the same way on every curve, so their spread misses it;
         # the map model's relative residual at the estimate is 0.8x the noise level)
-        (l0, l1), (c0, c1) = WEAR_RANGES['overlap_m'], WEAR_RANGES['radial_clearance_m']
         errs = self.model.meta.get('errors', {})
         clean, noisy = errs.get('clean', {}), errs.get('noise_1pct', {})
         p_rms = float(np.sqrt(np.mean(np.concatenate([p for _, _, p in curves]) ** 2)))
