@@ -47,10 +47,9 @@ class PreflightProcedure(Procedure):
 
     @classmethod
     def metrics(cls, compare=None) -> tuple:
-        out = tuple((f'est_{n}', 'float') for n in FAULT_NAMES)
-        out += tuple((f'std_{n}', 'float') for n in FAULT_NAMES)
-        out += (('ood_score', 'float'), ('mismatch', 'bool'))
-        return out + (('p12_rel_error', 'float'), ('spool_rel_error', 'float'))
+        return (tuple((f'{k}_{n}', 'float') for k in ('est', 'std') for n in FAULT_NAMES)
+                + (('ood_score', 'float'), ('mismatch', 'bool'), ('p12_rel_error', 'float'),
+                   ('spool_rel_error', 'float')))
 
     def _estimates(self) -> bool:
         """Whether the spec wants the network's metrics."""
@@ -138,14 +137,12 @@ class ValveTestProcedure(Procedure):
 
     @classmethod
     def metrics(cls, compare=None) -> tuple:
-        return (('est_radial_clearance_m', 'float'), ('est_radial_clearance_std_m', 'float'),
-                ('est_overlap_m', 'float'), ('est_overlap_std_m', 'float'),
-                ('pressure_residual_pa', 'float'), ('est_valve_degradation', 'float'),
-                ('est_valve_degradation_std', 'float'), ('est_leakage_coeff_m3_s_pa', 'float'),
-                ('est_leakage_coeff_m3_s_pa_std', 'float'), ('chi', 'float'),
-                ('mismatch', 'bool'), ('measured_supply_pressure_pa', 'float'),
-                ('measured_return_pressure_pa', 'float'),
-                ('measured_fluid_temperature_k', 'float'))
+        return tuple((n, 'bool' if n == 'mismatch' else 'float') for n in (
+            'est_radial_clearance_m', 'est_radial_clearance_std_m', 'est_overlap_m',
+            'est_overlap_std_m', 'pressure_residual_pa', 'est_valve_degradation',
+            'est_valve_degradation_std', 'est_leakage_coeff_m3_s_pa',
+            'est_leakage_coeff_m3_s_pa_std', 'chi', 'mismatch', 'measured_supply_pressure_pa',
+            'measured_return_pressure_pa', 'measured_fluid_temperature_k'))
 
     def check(self, where: str) -> None:
         spec = self.spec
