@@ -164,10 +164,8 @@ def cases(n: int, stream: int, p_degrade: float = 0.3, drift: bool = True,
     """``n`` cases of stream ``stream`` as ``(plant changes, seed)``: case ``i`` from its
     own generator ``default_rng([stream, i])``, sparse for odd ``i``; with ``drift`` the
     nuisances and conditions drawn too (:func:`draw_drift`, ``inner``), nominal
-    otherwise; ``fleet``: then every other nuisance of ``config/tolerances.yaml`` uniform
-    over its range and the dynamic frictions as a ratio of the case's breakaway ones
-    (:func:`eha_ros.physics.tolerances.draw_unit`, after the case's seed, so that the other
-    draws are those of the case without the fleet)."""
+    otherwise; ``fleet``: the unit of a fleet (module docstring), drawn after the case's seed
+    so that the other draws are those of the case without the fleet."""
     return _draw_cases(n, stream, lambda rng, i: draw_wear(rng, bool(i % 2), p_degrade),
                        drift, inner, fleet)
 
