@@ -339,9 +339,8 @@ class MonitorCore:
         if job.kind == 'preflight':
             return self._preflight_report(job)
         try:
-            if job.kind == 'in-service':
-                a = job.data
-                est = self.in_service.estimate(a[:, 0], a[:, 1], a[:, 2])
+            if job.kind == 'in-service':   # the columns XS, Q, P12
+                est = self.in_service.estimate(*job.data.T)
             else:
                 procedure, curves, conditions = job.data
                 if procedure == 'settled':
