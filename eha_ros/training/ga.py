@@ -293,9 +293,8 @@ def gradient_fit(xs_m, q_m3_s, p12_pa, xs_max_m: float, x0=THESIS_INITIAL, lb=TH
         c = full(v)
         with np.errstate(all='ignore'):
             r = (formula(c, wx, wq) - p) / norm
-        d1 = 1.0 + c[3] * sg + c[4] * sg * sg
-        d2 = 1.0 + c[6] * sg + c[7] * sg * sg
-        pen = weight * np.maximum(0.0, MIN_DENOMINATOR - np.concatenate([d1, d2]))
+        dens = np.concatenate([1.0 + c[a] * sg + c[b] * sg * sg for a, b in ((3, 4), (6, 7))])
+        pen = weight * np.maximum(0.0, MIN_DENOMINATOR - dens)
         return np.nan_to_num(np.concatenate([r, pen]), nan=1e6, posinf=1e6, neginf=-1e6)
 
     def jacobian(v):
@@ -313,12 +312,11 @@ def gradient_fit(xs_m, q_m3_s, p12_pa, xs_max_m: float, x0=THESIS_INITIAL, lb=TH
         j[:, 6] = -c[5] * wq3 * w2 / d2 ** 2
         j[:, 7] = -c[5] * wq3 * w4 / d2 ** 2
         jp = np.zeros((2 * sg.size, 8))
-        g1 = (1.0 + c[3] * sg + c[4] * sg * sg) < MIN_DENOMINATOR
-        g2 = (1.0 + c[6] * sg + c[7] * sg * sg) < MIN_DENOMINATOR
-        jp[:sg.size, 3] = -weight * sg * g1
-        jp[:sg.size, 4] = -weight * sg * sg * g1
-        jp[sg.size:, 6] = -weight * sg * g2
-        jp[sg.size:, 7] = -weight * sg * sg * g2
+        for k, (a, b) in enumerate(((3, 4), (6, 7))):   # each denominator's hinges
+            rows = slice(k * sg.size, (k + 1) * sg.size)
+            g = (1.0 + c[a] * sg + c[b] * sg * sg) < MIN_DENOMINATOR
+            jp[rows, a] = -weight * sg * g
+            jp[rows, b] = -weight * sg * sg * g
         jac = np.concatenate([j / norm, jp])[:, free]
         return np.nan_to_num(jac, nan=0.0, posinf=0.0, neginf=0.0)
 
