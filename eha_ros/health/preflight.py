@@ -325,9 +325,8 @@ class FaultModel:
         return FaultEstimate(vals, stds, score, limit, mismatch, note)
 
     def data(self) -> tuple:
-        flat = [flatten_weights(m) for m in self.members]
-        out = (self.in_mean, self.in_std, np.array(flat), self.calibration,
-               self.ood.weights, self.ood.scales)
+        out = (self.in_mean, self.in_std, np.array([flatten_weights(m) for m in self.members]),
+               self.calibration, self.ood.weights, self.ood.scales)
         for t in self.ood.subspaces:
             out += (t.basis, t.variances)
         if self.ood.net is not None:
