@@ -4,7 +4,7 @@ of a recording as numpy arrays for analysis (no ``rclpy`` needed)."""
 from __future__ import annotations
 
 import sys
-from typing import Any, Dict, List
+from typing import Any, Dict
 
 import numpy as np
 
@@ -16,28 +16,13 @@ __all__ = ['message_to_plain_data', 'flatten', 'load_topic_arrays', 'load_for_to
            'truncation_warning']
 
 
-def _is_rclpy_message(msg) -> bool:
-    return hasattr(type(msg), 'get_fields_and_field_types')
-
-
-def _field_names(msg) -> List[str]:
-    if _is_rclpy_message(msg):
-        return list(msg.get_fields_and_field_types())
-    return list(getattr(msg, '__slots__', ()))
-
-
-def _is_message(value) -> bool:
-    return _is_rclpy_message(value) or (hasattr(value, '__slots__') and
-                                        not isinstance(value, (str, bytes)))
-
-
 def message_to_plain_data(msg) -> Any:
     """A message (rclpy or decoded from a recording) as nested dicts and lists of plain values.
 
     Floats stay floats, integers ints (also ``byte`` fields, which rclpy gives as ``bytes``);
     sequences and arrays become lists.
     """
-    if _is_rclpy_message(msg):
+    if hasattr(type(msg), 'get_fields_and_field_types'):  # an rclpy message
         out = {}
         for name, field_type in msg.get_fields_and_field_types().items():
             value = getattr(msg, name)
@@ -45,8 +30,8 @@ def message_to_plain_data(msg) -> Any:
                 value = value[0]
             out[name] = message_to_plain_data(value)
         return out
-    if _is_message(msg):
-        return {name: message_to_plain_data(getattr(msg, name)) for name in _field_names(msg)}
+    if hasattr(msg, '__slots__'):  # a message decoded from a recording (mcap_ros2)
+        return {name: message_to_plain_data(getattr(msg, name)) for name in msg.__slots__}
     if isinstance(msg, (bytes, bytearray)):
         return list(msg)
     if isinstance(msg, np.ndarray):
