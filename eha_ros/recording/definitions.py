@@ -8,6 +8,7 @@ No ROS imports: the ``.msg`` and type-description files are read from
 
 from __future__ import annotations
 
+from itertools import repeat
 import json
 import os
 from pathlib import Path
@@ -100,21 +101,14 @@ def _msg_dependencies(pkg: str, text: str) -> List[str]:
     """Types ``pkg/Type`` used by the fields of a ``.msg`` text, in order of first use."""
     deps: List[str] = []
     for line in text.splitlines():
-        line = line.strip()
-        if not line or line.startswith('#'):
+        words = line.split()
+        if not words or words[0].startswith('#'):
             continue
-        field_type = line.split()[0]
-        field_type = field_type.split('[')[0].split('<=')[0]
-        if field_type in _PRIMITIVE_TYPES:
-            continue
-        if '/' in field_type:
+        field_type = words[0].split('[')[0].split('<=')[0]
+        if field_type not in _PRIMITIVE_TYPES:
             parts = field_type.split('/')
-            dep = f'{parts[0]}/{parts[-1]}'
-        else:
-            dep = f'{pkg}/{field_type}'
-        if dep not in deps:
-            deps.append(dep)
-    return deps
+            deps.append(f'{parts[0]}/{parts[-1]}' if len(parts) > 1 else f'{pkg}/{field_type}')
+    return list(dict.fromkeys(deps))
 
 
 def message_definition(type_name: str) -> str:
@@ -258,11 +252,9 @@ class SequenceGapCounter:
             self.publishers += 1
             self.missed_at_start += max(0, sequence - 1)
             return 0
-        gap = sequence - last - 1
-        if gap > 0:
-            self.lost += gap
-            return gap
-        return 0
+        gap = max(0, sequence - last - 1)
+        self.lost += gap
+        return gap
 
 
 def count_sequence_gaps(sequences: Iterable[Optional[int]],
@@ -270,9 +262,7 @@ def count_sequence_gaps(sequences: Iterable[Optional[int]],
     """Messages lost in a stream of publication sequence numbers (see
     :class:`SequenceGapCounter`); ``publishers`` gives each message's publisher id."""
     counter = SequenceGapCounter()
-    sequences = list(sequences)
-    pubs = list(publishers) if publishers is not None else [None] * len(sequences)
-    for seq, pub in zip(sequences, pubs):
+    for seq, pub in zip(sequences, repeat(None) if publishers is None else publishers):
         counter.add(seq, pub)
     return counter.lost
 
