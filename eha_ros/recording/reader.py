@@ -157,10 +157,11 @@ class McapReader:
             return src, False, end
         return src, False, None
 
-    def _stop(self, exc_type, message: str):
-        self.problem = message
+    def _stop(self, exc_type, problem: str):
+        """Reading ends at ``problem`` (of the source, which the message names first)."""
+        self.problem = f'{_describe(self._source)}: {problem}'
         if self.strict:
-            raise exc_type(message)
+            raise exc_type(self.problem)
 
     def _records(self) -> Iterator[Any]:
         """Top-level records in file order; stops (or raises) at truncation or damage."""
@@ -172,8 +173,8 @@ class McapReader:
             magic = stream.read(len(MCAP_MAGIC))
             if magic != MCAP_MAGIC:
                 if 0 < len(magic) < len(MCAP_MAGIC) and MCAP_MAGIC.startswith(magic):
-                    self._stop(TruncatedError, f'{_describe(self._source)}: file ends within '
-                               'its MCAP magic bytes (truncated)')
+                    self._stop(TruncatedError, 'file ends within its MCAP magic bytes '
+                               '(truncated)')
                     return
                 what = 'empty file' if not magic else 'no MCAP magic bytes at the start'
                 raise NotMcapError(f'{_describe(self._source)}: not an MCAP file ({what})')
@@ -181,22 +182,22 @@ class McapReader:
             while True:
                 head = stream.read(9)
                 if len(head) < 9:
-                    self._stop(TruncatedError, f'{_describe(self._source)}: file ends at byte '
-                               f'{offset + len(head)} before its footer (truncated)')
+                    self._stop(TruncatedError, f'file ends at byte {offset + len(head)} '
+                               'before its footer (truncated)')
                     return
                 opcode, length = struct.unpack('<BQ', head)
                 if size is not None and offset + 9 + length > size:
-                    self._stop(TruncatedError, f'{_describe(self._source)}: record at byte '
-                               f'{offset} runs past the end of the file (truncated)')
+                    self._stop(TruncatedError, f'record at byte {offset} runs past the end '
+                               'of the file (truncated)')
                     return
                 if length > 1 << 34:
-                    self._stop(CorruptError, f'{_describe(self._source)}: record at byte '
-                               f'{offset} claims {length} bytes (corrupt)')
+                    self._stop(CorruptError,
+                               f'record at byte {offset} claims {length} bytes (corrupt)')
                     return
                 body = stream.read(length)
                 if len(body) < length:
-                    self._stop(TruncatedError, f'{_describe(self._source)}: record at byte '
-                               f'{offset} is cut short (truncated)')
+                    self._stop(TruncatedError,
+                               f'record at byte {offset} is cut short (truncated)')
                     return
                 reader = _RECORD_READERS.get(opcode)
                 record = None
@@ -204,37 +205,22 @@ class McapReader:
                     try:
                         record = reader(ReadDataStream(io.BytesIO(body)))
                     except (McapError, struct.error, UnicodeDecodeError, ValueError) as exc:
-                        self._stop(CorruptError, f'{_describe(self._source)}: damaged '
-                                   f'{Opcode(opcode).name.lower()} record at byte {offset} '
-                                   f'({exc or type(exc).__name__})')
+                        self._stop(CorruptError, f'damaged {Opcode(opcode).name.lower()} '
+                                   f'record at byte {offset} ({exc or type(exc).__name__})')
                         return
                 offset += 9 + length
                 if record is not None:
                     yield offset, record
                 if isinstance(record, Footer):
                     if stream.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
-                        self._stop(TruncatedError, f'{_describe(self._source)}: file ends '
-                                   'without its closing magic bytes (truncated)')
+                        self._stop(TruncatedError, 'file ends without its closing magic '
+                                   'bytes (truncated)')
                         return
                     self.complete = True
                     return
         finally:
             if owned:
                 stream.close()
-
-    def _add_schema_channel(self, schemas: Dict[int, Schema], record) -> None:
-        if isinstance(record, Schema):
-            schemas.setdefault(record.id, record)
-        elif isinstance(record, Channel):
-            if record.topic in self.channels:
-                return
-            schema = schemas.get(record.schema_id)
-            self.channels[record.topic] = ChannelInfo(
-                id=record.id, topic=record.topic,
-                type_name=schema.name if schema else '',
-                message_encoding=record.message_encoding, metadata=dict(record.metadata),
-                schema_encoding=schema.encoding if schema else '',
-                schema_text=schema.data.decode('utf-8', 'replace') if schema else '')
 
     def _messages(self) -> Iterator[RecordedMessage]:
         schemas: Dict[int, Schema] = {}
@@ -243,11 +229,18 @@ class McapReader:
         self.metadata = {}
 
         def handle(records):
+            """The messages of ``records``; their schemas and channels are taken in."""
             for rec in records:
-                if isinstance(rec, (Schema, Channel)):
-                    self._add_schema_channel(schemas, rec)
-                    if isinstance(rec, Channel) and rec.topic in self.channels:
-                        by_id.setdefault(rec.id, self.channels[rec.topic])
+                if isinstance(rec, Schema):
+                    schemas.setdefault(rec.id, rec)
+                elif isinstance(rec, Channel):
+                    if rec.topic not in self.channels:  # a topic's first channel names it
+                        schema = schemas.get(rec.schema_id) or Schema(0, b'', '', '')
+                        self.channels[rec.topic] = ChannelInfo(
+                            rec.id, rec.topic, schema.name, rec.message_encoding,
+                            dict(rec.metadata), schema.encoding,
+                            schema.data.decode('utf-8', 'replace'))
+                    by_id.setdefault(rec.id, self.channels[rec.topic])
                 elif isinstance(rec, Message):
                     yield rec
 
@@ -256,8 +249,7 @@ class McapReader:
                 try:
                     inner = breakup_chunk(record, validate_crc=True)
                 except Exception as exc:  # zstd/lz4 errors, CRC mismatch, EndOfFile
-                    self._stop(CorruptError, f'{_describe(self._source)}: damaged chunk '
-                               f'ending at byte {offset} ({exc})')
+                    self._stop(CorruptError, f'damaged chunk ending at byte {offset} ({exc})')
                     return
                 self.chunks += 1
                 records: Iterable = inner
@@ -269,8 +261,7 @@ class McapReader:
             for msg in handle(records):
                 channel = by_id.get(msg.channel_id)
                 if channel is None:
-                    self._stop(CorruptError, f'{_describe(self._source)}: message on unknown '
-                               f'channel {msg.channel_id}')
+                    self._stop(CorruptError, f'message on unknown channel {msg.channel_id}')
                     return
                 if self._topics is not None and channel.topic not in self._topics:
                     continue
@@ -279,8 +270,8 @@ class McapReader:
                     try:
                         decoded = self._decoder(schemas, channel)(msg.data)
                     except Exception as exc:
-                        self._stop(CorruptError, f'{_describe(self._source)}: cannot decode a '
-                                   f'{channel.type_name} message on {channel.topic} ({exc})')
+                        self._stop(CorruptError, f'cannot decode a {channel.type_name} '
+                                   f'message on {channel.topic} ({exc})')
                         return
                 yield RecordedMessage(channel.topic, channel.type_name, msg.log_time,
                                       msg.publish_time, msg.sequence, msg.data, decoded)
