@@ -31,6 +31,7 @@ exists, or nothing of the input is readable; one line on stderr.
 from __future__ import annotations
 
 import argparse
+from itertools import chain
 import json
 from pathlib import Path
 import sys
@@ -94,21 +95,19 @@ def recover(source, output, *, overwrite: bool = False) -> dict:
                              definition=ch.schema_text)
             counters[topic] = SequenceGapCounter()
 
-        msg = first
-        while msg is not None:
+        for msg in chain([first] if first else [], messages):
             if msg.topic not in counters:
                 register(msg.topic)
             writer.write(msg.topic, msg.data, msg.log_time_ns, msg.publish_time_ns,
                          msg.sequence)
             counters[msg.topic].add(msg.sequence or None)
-            msg = next(messages, None)
         for topic in reader.channels:
             if topic not in counters:
                 register(topic)
         progress = _progress(reader.metadata)
-        publishers = progress.get('publishers', {})
-        if isinstance(progress.get('run'), dict):
-            publishers = progress['run'].get('publishers', publishers)
+        run = progress.get('run')
+        run = dict(run) if isinstance(run, dict) else {}
+        publishers = run.get('publishers', progress.get('publishers', {}))
         recorded_lost = progress.get('lost_messages', progress.get('lost', {}))
         lost, how = {}, {}
         for topic, counter in counters.items():
@@ -120,7 +119,6 @@ def recover(source, output, *, overwrite: bool = False) -> dict:
                 lost[topic] = int(recorded_lost.get(topic, 0))
                 how[topic] = 'recorder, at its last flush'
         writer.lost_counts = lost
-        run = dict(progress.get('run', {})) if isinstance(progress.get('run'), dict) else {}
         run['recovered'] = {'source': str(source), 'source_complete': reader.complete,
                             'problem': reader.problem, 'chunks': reader.chunks,
                             'messages': sum(writer.message_counts.values()),
