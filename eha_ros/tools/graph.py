@@ -509,14 +509,25 @@ def main(argv=None) -> int:
         return 0
     from rclpy.exceptions import ParameterException
 
-    from eha_ros.harness import GraphConfigError, GraphDataLoss, GraphError, run_graph
+    from eha_ros.harness import GraphDataLoss, GraphError, run_graph
     from eha_ros.physics import ParameterError
     from eha_ros.recording.stop import StopRequest
+
+    def fail(exc, status: int) -> int:
+        print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
+        return status
+
+    def show(result, recorded: bool) -> dict:
+        """Print the summary of ``result`` (with the recording's, where ``recorded``)."""
+        from eha_ros.recording.reader import scan
+        summary = summarize(result, args.processes, scan(config.record) if recorded else None)
+        print(json.dumps(summary, default=float)) if args.json else _print_text(summary)
+        return summary
+
     try:
         config = build_config(args)
     except (UsageError, ParameterError) as exc:
-        print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
-        return 2
+        return fail(exc, 2)
 
     def started(pids):
         where = ', '.join(f'{n} (pid {p})' for n, p in pids.items()) or 'this process'
@@ -533,38 +544,18 @@ def main(argv=None) -> int:
             env = env_cm.__enter__()
         result = run_graph(config, processes=args.processes, env=env, timeout_s=args.timeout,
                            stop=lambda: stop.requested, on_start=started)
-    except GraphConfigError as exc:  # a node refused a parameter
-        print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
-        return 2
     except GraphDataLoss as exc:  # the run ended, incomplete (or a node failed mid-run):
-        result = exc.result        # show what there is, fail loudly
-        info = None
-        if config.record and Path(config.record).exists():
-            from eha_ros.recording.reader import scan
-            info = scan(config.record)
-        summary = summarize(result, args.processes, info)
-        print(json.dumps(summary, default=float)) if args.json else _print_text(summary)
-        print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
-        return 1
+        show(exc.result, bool(config.record) and Path(config.record).exists())  # what there is
+        return fail(exc, 1)  # and fail loudly
+    except (ParameterError, ParameterException, ValueError) as exc:
+        return fail(exc, 2)        # refused: by a node (GraphConfigError), or in this process
     except GraphError as exc:
-        print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
-        return 130 if stop.requested else 1
-    except (ParameterError, ParameterException, ValueError) as exc:  # refused (one process)
-        print(f'{PROG}: error: {" ".join(str(exc).split())}', file=sys.stderr)
-        return 2
+        return fail(exc, 130 if stop.requested else 1)
     finally:
         stop.restore()
         if env_cm is not None:
             env_cm.__exit__(None, None, None)
-    info = None
-    if config.record:
-        from eha_ros.recording.reader import scan
-        info = scan(config.record)
-    summary = summarize(result, args.processes, info)
-    if args.json:
-        print(json.dumps(summary, default=float))
-    else:
-        _print_text(summary)
+    summary = show(result, bool(config.record))
     if result.interrupted:
         return 130
     if not result.complete:  # realtime: lockstep raised above
