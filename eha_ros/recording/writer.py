@@ -51,16 +51,10 @@ def _compression(name: str) -> CompressionType:
                 continue
         return CompressionType.NONE
     table = {'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4,
-             'none': CompressionType.NONE, '': CompressionType.NONE}
+             'none': CompressionType.NONE}
     if name not in table:
         raise ValueError(f'unknown compression {name!r} (zstd, lz4, none or auto)')
     return table[name]
-
-
-def _message_type_name(msg) -> str:
-    """``pkg/msg/Type`` of a generated rclpy message instance."""
-    cls = type(msg)
-    return f"{cls.__module__.split('.')[0]}/msg/{cls.__name__}"
 
 
 class McapWriter:
@@ -220,7 +214,8 @@ class McapWriter:
         from rclpy.serialization import serialize_message
 
         if topic not in self._channels:
-            self.add_topic(topic, _message_type_name(msg))
+            cls = type(msg)  # a generated rclpy message: its type is pkg/msg/Type
+            self.add_topic(topic, f"{cls.__module__.split('.')[0]}/msg/{cls.__name__}")
         self.write(topic, serialize_message(msg), log_time_ns, publish_time_ns, sequence)
 
     def flush(self) -> None:
