@@ -150,11 +150,6 @@ class RecorderError(ValueError):
     """A usage error: unknown topic, existing output file, bad parameter."""
 
 
-def default_output() -> str:
-    """``eha_<YYYYmmdd>-<HHMMSS>.mcap`` (local time)."""
-    return datetime.datetime.now().strftime('eha_%Y%m%d-%H%M%S.mcap')
-
-
 def resolve_topics(requested: Sequence[str], namespace: str = graph.NAMESPACE) -> Dict[str, str]:
     """Validate requested topic names against the graph; returns ``topic -> type``.
 
@@ -251,7 +246,8 @@ class Recorder(Node):
             raise ParameterError(f'{sorted(changes)[0]} cannot change while running')
 
     def _configure(self, values: dict) -> None:
-        self.output = values['output'] or default_output()
+        self.output = values['output'] or datetime.datetime.now().strftime(
+            'eha_%Y%m%d-%H%M%S.mcap')  # local time
         self.duration_s = values['duration_s']
         self.batch_period_s = values['batch_period_s']
         self.max_bag_size_b = values['max_bag_size_b']
@@ -324,11 +320,6 @@ class Recorder(Node):
             state.registered = False
         return writer
 
-    def _rotate(self) -> None:
-        """Close the file being written and start the next one (split)."""
-        self._close_writer()
-        self.writer = self._open_writer()
-
     def _split_due(self, log_ns: int) -> bool:
         if self._file_started_ns is None:
             self._file_started_ns = log_ns
@@ -373,8 +364,9 @@ class Recorder(Node):
             while ring and ring[0][2] < log_ns - self.snapshot_ns:
                 ring.popleft()
             return
-        if self.numbered and self._split_due(log_ns):
-            self._rotate()
+        if self.numbered and self._split_due(log_ns):  # close the file, start the next one
+            self._close_writer()
+            self.writer = self._open_writer()
             self._file_started_ns = log_ns
         if not state.registered:
             self._register(state)
@@ -475,8 +467,10 @@ class Recorder(Node):
                      f'{lost.get(topic, 0)} lost{note}')
 
 
-def _parser() -> argparse.ArgumentParser:
-    """The options, each stored under the name of the parameter it sets."""
+def main(argv: Optional[List[str]] = None) -> int:
+    """Console script ``recorder``; returns the exit status."""
+    argv = list(sys.argv if argv is None else argv)
+    # the options, each stored under the name of the parameter it sets
     parser = argparse.ArgumentParser(
         prog='recorder', description='Record the actuator graph into an MCAP file.')
     parser.add_argument('-o', '--output', help='MCAP file to create (never overwritten)')
@@ -497,13 +491,7 @@ def _parser() -> argparse.ArgumentParser:
                         help='snapshot mode: keep the last S seconds, write them on the '
                              '~/snapshot service (std_srvs/Trigger) or when /eha/health '
                              'turns ERROR')
-    return parser
-
-
-def main(argv: Optional[List[str]] = None) -> int:
-    """Console script ``recorder``; returns the exit status."""
-    argv = list(sys.argv if argv is None else argv)
-    args = _parser().parse_args(remove_ros_args(argv)[1:])
+    args = parser.parse_args(remove_ros_args(argv)[1:])
     overrides = [Parameter(name, value=value) for name, value in vars(args).items()
                  if value is not None]
 
