@@ -191,8 +191,8 @@ def plot_runs(runs: Sequence[Run], out_dir: Path, align: str = 'stamp') -> List[
 
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = runs[0].time_s[0]
-    paths = []
-    for (field, stem, ylabel, scale), path in zip(SIGNALS, plot_paths(out_dir)):
+    paths = plot_paths(out_dir)
+    for (field, stem, ylabel, scale), path in zip(SIGNALS, paths):
         fig, ax = plt.subplots(figsize=(8, 4.5), layout='constrained')
         for run in runs:
             t = run.time_s - (run.time_s[0] if align == 'start' else t0)
@@ -204,25 +204,7 @@ def plot_runs(runs: Sequence[Run], out_dir: Path, align: str = 'stamp') -> List[
         ax.legend()
         fig.savefig(path, dpi=120)
         plt.close(fig)
-        paths.append(path)
     return paths
-
-
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog=PROG, description='Relative errors and plots of recorded runs against a reference.')
-    parser.add_argument('files', nargs='+', metavar='FILE.mcap')
-    parser.add_argument('--reference', metavar='A',
-                        help='reference run: a file given, or a run label (default: the first)')
-    parser.add_argument('--out', default='.', metavar='DIR',
-                        help='folder for the PNG plots (default: the working directory)')
-    parser.add_argument('--json', nargs='?', const='-', metavar='FILE',
-                        help='JSON instead of the table (to FILE, or stdout)')
-    parser.add_argument('--align', choices=('stamp', 'start'), default='stamp',
-                        help='align on header stamps (default) or on each run\'s start')
-    parser.add_argument('--no-plots', action='store_true', help='write no PNG')
-    parser.add_argument('--force', action='store_true', help='overwrite existing outputs')
-    return parser
 
 
 def _reference_index(runs: List[Run], reference: Optional[str]) -> int:
@@ -242,7 +224,20 @@ def _reference_index(runs: List[Run], reference: Optional[str]) -> int:
 
 def main(argv: Optional[List[str]] = None) -> int:
     """Console script ``eha-compare``; returns the exit status."""
-    args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
+    parser = argparse.ArgumentParser(
+        prog=PROG, description='Relative errors and plots of recorded runs against a reference.')
+    parser.add_argument('files', nargs='+', metavar='FILE.mcap')
+    parser.add_argument('--reference', metavar='A',
+                        help='reference run: a file given, or a run label (default: the first)')
+    parser.add_argument('--out', default='.', metavar='DIR',
+                        help='folder for the PNG plots (default: the working directory)')
+    parser.add_argument('--json', nargs='?', const='-', metavar='FILE',
+                        help='JSON instead of the table (to FILE, or stdout)')
+    parser.add_argument('--align', choices=('stamp', 'start'), default='stamp',
+                        help='align on header stamps (default) or on each run\'s start')
+    parser.add_argument('--no-plots', action='store_true', help='write no PNG')
+    parser.add_argument('--force', action='store_true', help='overwrite existing outputs')
+    args = parser.parse_args(argv)
     try:
         if len(args.files) < 2:
             raise CompareError('give at least two recordings (a reference and a run)')

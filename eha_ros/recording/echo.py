@@ -47,19 +47,15 @@ def csv_row(msg) -> dict:
             for key, value in flatten(msg).items()}
 
 
-def _parser() -> argparse.ArgumentParser:
+def main(argv: Optional[List[str]] = None) -> int:
+    """Console script ``eha-echo``; returns the exit status."""
     parser = argparse.ArgumentParser(prog=PROG, description='Print the messages of a topic.')
     parser.add_argument('topic', metavar='TOPIC')
     parser.add_argument('--csv', action='store_true', help='CSV rows instead of YAML')
     parser.add_argument('--count', type=int, metavar='N', help='exit after N messages')
     parser.add_argument('--timeout', type=float, default=5.0, metavar='S',
                         help='seconds to wait for the topic to appear (default 5)')
-    return parser
-
-
-def main(argv: Optional[List[str]] = None) -> int:
-    """Console script ``eha-echo``; returns the exit status."""
-    args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
+    args = parser.parse_args(argv)
     if args.count is not None and args.count < 1:
         print(f'{PROG}: error: --count must be >= 1, got {args.count}', file=sys.stderr)
         return 2

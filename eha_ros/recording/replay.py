@@ -95,7 +95,16 @@ def _publisher_qos(info: RecordingInfo, topic: str):
     return qos
 
 
-def _parser() -> argparse.ArgumentParser:
+def _sleep_until(target: float, stop) -> None:
+    while not stop.requested:
+        left = target - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(left, 0.1))
+
+
+def main(argv: Optional[List[str]] = None) -> int:
+    """Console script ``eha-replay``; returns the exit status."""
     parser = argparse.ArgumentParser(
         prog=PROG, description='Republish a recording with its recorded timing and /clock.')
     parser.add_argument('file', metavar='FILE.mcap')
@@ -110,20 +119,7 @@ def _parser() -> argparse.ArgumentParser:
                         help=f'namespace of the actuator topics (default {graph.NAMESPACE})')
     parser.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='S',
                         help='wait up to S seconds for every topic to have a subscriber')
-    return parser
-
-
-def _sleep_until(target: float, stop) -> None:
-    while not stop.requested:
-        left = target - time.monotonic()
-        if left <= 0:
-            return
-        time.sleep(min(left, 0.1))
-
-
-def main(argv: Optional[List[str]] = None) -> int:
-    """Console script ``eha-replay``; returns the exit status."""
-    args = _parser().parse_args(sys.argv[1:] if argv is None else argv)
+    args = parser.parse_args(argv)
     if not args.rate > 0:
         print(f'{PROG}: error: --rate must be > 0, got {args.rate}', file=sys.stderr)
         return 2
