@@ -579,11 +579,9 @@ class LiveServer:
                 client.queue.put_data(ch.topic, message_data(sid, t, payload))
             self.on_subscribed()
         elif op == 'unsubscribe':
+            gone = set(msg['subscriptionIds'])
             with self._lock:
-                for sid in msg['subscriptionIds']:
-                    for cid, s in list(client.subs.items()):
-                        if s == sid:
-                            del client.subs[cid]
+                client.subs = {c: s for c, s in client.subs.items() if s not in gone}
         elif op in ('getParameters', 'setParameters', 'subscribeParameterUpdates',
                     'unsubscribeParameterUpdates'):
             self._on_parameters(client, msg)
