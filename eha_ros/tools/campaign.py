@@ -49,7 +49,7 @@ from pathlib import Path
 
 from eha_ros.graph import ALGEBRAIC_MODELS, DYNAMIC_MODELS, MODELS, REFERENCE_SCENARIOS
 from eha_ros.harness import GraphConfig, GraphError, run_graph
-from eha_ros.physics import ParameterError, get_scenario
+from eha_ros.physics import ParameterError, get_scenario, load_params
 
 
 #: Valves of the maintenance part: wear parameters set on the plant.
@@ -122,7 +122,6 @@ def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=GRAPH_MODELS,
         if comparer is not None:
             comparer.terminate()
         raise
-    from eha_ros.physics import load_params
     nominal = load_params()
     from eha_ros.health.monitor import ITEMS
     valve_results = {}

@@ -34,8 +34,9 @@ import numpy as np
 from eha_ros.graph import (LEVEL_NAMES, STATUS_PREFLIGHT, STATUS_VALVE_TEST, TOPIC_HEALTH,
                            TOPIC_STATE)
 from eha_ros.physics import ParameterError, load_params
-from eha_ros.recording.arrays import load_for_tool
+from eha_ros.recording.arrays import flatten, load_for_tool
 from eha_ros.recording.definitions import RecordingError
+from eha_ros.recording.reader import McapReader
 from eha_ros.health.thresholds import HealthThresholds
 from eha_ros.health.monitor import ITEMS, SETTLE_S, UPDATE_PERIOD_S, WINDOW_S, MonitorCore
 
@@ -52,8 +53,6 @@ _OPTIONAL_FIELDS = {'valve_test_procedure': 0, 'supply_pressure_measured_pa': ma
 
 def _recorded_health(path) -> list:
     """The recorded HealthStatus messages as flat dicts (sequence fields kept)."""
-    from eha_ros.recording.arrays import flatten
-    from eha_ros.recording.reader import McapReader
     try:
         return [flatten(m.message) for m in McapReader(path, topics=[TOPIC_HEALTH])]
     except (OSError, RecordingError):
