@@ -404,22 +404,16 @@ class LiveServer:
 
         async def close():
             self._server.close(close_connections=False)   # no new clients
-            with self._lock:
-                clients = list(self.clients.values())
-            for c in clients:   # the final drop count, however recent the last one was
+            for c in self._clients():   # the final drop count, however recent the last one was
                 self._tell_drops(c, force=True)
             deadline = time.monotonic() + flush_s
-            while time.monotonic() < deadline:
-                with self._lock:
-                    busy = [c for c in self.clients.values() if len(c.queue) or c.sending]
-                if not busy:
-                    break
+            while time.monotonic() < deadline and any(
+                    len(c.queue) or c.sending for c in self._clients()):
                 await asyncio.sleep(0.01)
-            with self._lock:
-                for c in self.clients.values():
-                    if len(c.queue) or c.sending:
-                        left[c.id] = len(c.queue) + c.sending
-            for c in list(self.clients.values()):
+            for c in self._clients():
+                if len(c.queue) or c.sending:
+                    left[c.id] = len(c.queue) + c.sending
+            for c in self._clients():
                 await c.ws.close(1001, 'server stopping')
             await self._server.wait_closed()
         try:
@@ -430,6 +424,11 @@ class LiveServer:
         self._thread.join(5.0)
         self._thread = None
         return left
+
+    def _clients(self) -> List[_Client]:
+        """The clients connected now (a copy, to go through without the lock)."""
+        with self._lock:
+            return list(self.clients.values())
 
     # producers (any thread) ------------------------------------------------------------------
     def publish(self, source: str, payload: bytes, log_time_ns: Optional[int] = None) -> None:
@@ -451,9 +450,7 @@ class LiveServer:
 
     def broadcast_time(self, t_ns: int) -> None:
         frame = time_frame(int(t_ns))
-        with self._lock:
-            clients = list(self.clients.values())
-        for c in clients:
+        for c in self._clients():
             c.queue.put_data('time', frame)
 
     def status(self, message: str, level: int = INFO, client_id: Optional[int] = None,
@@ -462,17 +459,13 @@ class LiveServer:
         msg = {'op': 'status', 'level': int(level), 'message': message}
         if status_id:
             msg['id'] = status_id
-        with self._lock:
-            clients = [c for c in self.clients.values()
-                       if client_id is None or c.id == client_id]
-        for c in clients:
-            c.queue.put_control(json.dumps(msg))
+        for c in self._clients():
+            if client_id is None or c.id == client_id:
+                c.queue.put_control(json.dumps(msg))
 
     def publish_parameter_values(self, values: Sequence[dict]) -> None:
         """Parameter updates to the clients subscribed to them."""
-        with self._lock:
-            clients = list(self.clients.values())
-        for c in clients:
+        for c in self._clients():
             mine = [v for v in values if v['name'] in c.params]
             if mine:
                 c.queue.put_control(json.dumps({'op': 'parameterValues', 'parameters': mine}))
