@@ -91,10 +91,8 @@ _RECORD_READERS = {
 
 
 class McapReader:
-    """Read the messages of a recording in file order: an iterator of :class:`RecordedMessage`.
-
-    The file is read sequentially (the summary section is not needed), so a file whose writer
-    was killed, or that was cut, yields every message up to its last complete chunk.
+    """Read the messages of a recording in file order (see the module docstring): an iterator
+    of :class:`RecordedMessage`.
 
     Parameters
     ----------

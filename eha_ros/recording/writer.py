@@ -1,10 +1,8 @@
 """Write a recording (:class:`McapWriter`) in the MCAP layout rosbag2's MCAP storage uses:
 
 * profile ``ros2``; one schema per message type, named ``pkg/msg/Type``, encoding ``ros2msg``:
-  the type's ``.msg`` text followed, for every (nested) dependency once, by a line of 80 ``=``,
-  ``MSG: pkg/Type`` and that type's ``.msg`` text
-  (:func:`~eha_ros.recording.definitions.message_definition`; the ``.msg`` files come from
-  ``<prefix>/share/<pkg>/msg/``);
+  the type's ``.msg`` text and those of its dependencies, as
+  :func:`~eha_ros.recording.definitions.message_definition` describes;
 * one channel per topic, message encoding ``cdr``, with the channel metadata rosbag2 writes:
   ``offered_qos_profiles`` (YAML list of the publishers' QoS) and ``topic_type_hash``
   (``RIHS01_...`` from the installed type description ``.json``);
