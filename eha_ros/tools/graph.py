@@ -194,9 +194,7 @@ def node_defaults(descriptions: bool = False) -> dict:
                     desc = node.describe_parameter(pname).description
                     out[name][pname] = (value, desc) if descriptions else value
             finally:
-                close = getattr(node, 'close', None)
-                if close:
-                    close()
+                getattr(node, 'close', lambda: None)()
                 node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
@@ -371,12 +369,11 @@ def summarize(result, processes: bool, recording_info=None) -> dict:
     return out
 
 
-def _print_text(summary: dict, out=sys.stdout) -> None:
+def _print_text(summary: dict) -> None:
     s = summary
     state = 'complete' if s['complete'] else ('interrupted' if s['interrupted'] else
                                               'incomplete')
-    print(f'{PROG}: {s["scenario"]} model {s["model"]}, {s["mode"]}, {s["layout"]}: {state}',
-          file=out)
+    print(f'{PROG}: {s["scenario"]} model {s["model"]}, {s["mode"]}, {s["layout"]}: {state}')
     if s['mode'] == 'lockstep':
         rate = s['simulated_s_per_wall_s']
         pace = (f' ({rate:.2f} simulated s per wall s, {s["resent_ticks"]} ticks re-sent)'
@@ -385,41 +382,40 @@ def _print_text(summary: dict, out=sys.stdout) -> None:
         rtf = s['real_time_factor']
         pace = f' ({rtf:.3f} x real time)' if rtf else ''
     print(f'  simulated {s["simulated_s"]:.3f} s in {s["wall_s"]:.2f} s wall from the '
-          f'synchronised start{pace}; start-up (discovery) {s["discovery_s"]:.2f} s', file=out)
+          f'synchronised start{pace}; start-up (discovery) {s["discovery_s"]:.2f} s')
     print(f'  {s["states"]} states ({s["ticks_missing"]} ticks missing), '
           f'{s["current_commands"]} current commands'
-          + ('; the plant DIVERGED' if s['diverged'] else ''), file=out)
+          + ('; the plant DIVERGED' if s['diverged'] else ''))
     if s['stale_command_ticks'] or s['safe_action_ticks']:
         print(f'  {s["stale_command_ticks"]} ticks ran on a stale current command, '
-              f'{s["safe_action_ticks"]} on the command watchdog\'s safe action', file=out)
+              f'{s["safe_action_ticks"]} on the command watchdog\'s safe action')
     if not s['data_complete']:
-        print(f'  DATA INCOMPLETE: {s["data_loss"]}', file=out)
+        print(f'  DATA INCOMPLETE: {s["data_loss"]}')
     if 'final_jack_position_m' in s:
         print(f'  jack at {s["final_jack_position_m"] * 1e3:.5f} mm, command '
-              f'{(s["final_command_m"] or 0.0) * 1e3:.5f} mm', file=out)
+              f'{(s["final_command_m"] or 0.0) * 1e3:.5f} mm')
     for ev in s['events']:
         print(f'  event ({ev["source"]}) at tick {ev["tick_index"]} on {ev["node"]}: '
-              + ', '.join(f'{k}={v:g}' for k, v in ev['changes'].items()), file=out)
+              + ', '.join(f'{k}={v:g}' for k, v in ev['changes'].items()))
     if 'health' in s:
         h = s['health']
         if h is None:
-            print('  health: no estimate published', file=out)
+            print('  health: no estimate published')
         else:
             print(f'  health [{h["level"]}] {h["message"]} (clearance '
                   f'{h["radial_clearance_m"] * 1e6:.2f} +- {h["radial_clearance_std_m"] * 1e6:.2f}'
                   f' um, overlap {h["overlap_m"] * 1e6:.2f} +- {h["overlap_std_m"] * 1e6:.2f} um,'
-                  f' {h["estimates"]} estimates)', file=out)
+                  f' {h["estimates"]} estimates)')
     if 'recording' in s:
         r = s['recording']
         print(f'  recorded {sum(r["messages"].values())} messages to {r["file"]}, '
               f'{sum(r["lost"].values())} lost'
-              + ('' if r['complete'] else ' (file INCOMPLETE: run eha-recover)'), file=out)
+              + ('' if r['complete'] else ' (file INCOMPLETE: run eha-recover)'))
     for node, v in s.get('timing', {}).items():
         if s['mode'] == 'lockstep':
             print(f'  {node}: {v.get("Events since startup")} ticks, '
                   f'{v.get("Simulated s per wall s")} simulated s per wall s, '
-                  f'{v.get("Overruns since startup")} overruns, {v.get("Busy (core)")} core',
-                  file=out)
+                  f'{v.get("Overruns since startup")} overruns, {v.get("Busy (core)")} core')
         else:
             print(f'  {node}: {v.get("Actual frequency (Hz)")} Hz, '
                   f'{v.get("On time since startup (%)")} % on time, '
@@ -427,17 +423,17 @@ def _print_text(summary: dict, out=sys.stdout) -> None:
                   f'{v.get("Slipped ticks since startup")} slipped, '
                   f'{v.get("Overruns since startup")} overruns, jitter p99 '
                   f'{v.get("Period jitter p99 since startup (ms)")} ms, '
-                  f'{v.get("Busy (core)")} core', file=out)
+                  f'{v.get("Busy (core)")} core')
     if 'trace' in s:
         from eha_ros.tickloop import describe_shares
-        print(f'  timing trace written to {s["trace"]["file"]}', file=out)
+        print(f'  timing trace written to {s["trace"]["file"]}')
         for node, t in s['trace']['nodes'].items():
             if 'missing' in t:
-                print(f'  {node} trace: {t["missing"]}', file=out)
+                print(f'  {node} trace: {t["missing"]}')
                 continue
             print(f'  {node} trace: {describe_shares(t["shares"])}'
                   + ('' if t['complete'] else f' (INCOMPLETE: {t["dropped"]} ticks not '
-                     'recorded)'), file=out)
+                     'recorded)'))
 
 
 def parser() -> argparse.ArgumentParser:
