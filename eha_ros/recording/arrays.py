@@ -98,18 +98,15 @@ def load_topic_arrays(source, topic: str, *, strict: bool = False) -> Dict[str, 
         If the file cannot be read or is not a readable recording; the message names it.
     """
     columns: Dict[str, list] = {'log_time_ns': [], 'publish_time_ns': []}
-    n = 0
     try:
         reader = McapReader(source, topics=[topic], strict=strict)
-        for msg in reader:
+        for n, msg in enumerate(reader):
             flat = _time_fields(flatten(msg.message))
             columns['log_time_ns'].append(msg.log_time_ns)
             columns['publish_time_ns'].append(msg.publish_time_ns)
             for key, value in flat.items():
-                if isinstance(value, list):
-                    continue
-                columns.setdefault(key, [None] * n).append(value)
-            n += 1
+                if not isinstance(value, list):  # sequence fields are left out
+                    columns.setdefault(key, [None] * n).append(value)
     except OSError as exc:
         raise RecordingError(f'cannot read {_describe(source)}: {exc.strerror or exc}') from None
     if topic not in reader.channels:
@@ -136,15 +133,14 @@ def truncation_warning(prog: str, source, problem: str, count: int, what: str) -
             f'before it (to repair the file: eha-recover {_describe(source)} -o FIXED.mcap)')
 
 
-def load_for_tool(source, topic: str, prog: str, file=None) -> Dict[str, np.ndarray]:
+def load_for_tool(source, topic: str, prog: str) -> Dict[str, np.ndarray]:
     """:func:`load_topic_arrays` as the offline tools use it: a damaged file raises, a
     truncated one (a killed recorder's) is read up to its last complete chunk with one
-    warning line on ``file`` (stderr) naming the count of messages recovered and
-    ``eha-recover``."""
+    warning line on stderr naming the count of messages recovered and ``eha-recover``."""
     try:
         return load_topic_arrays(source, topic, strict=True)
     except TruncatedError as exc:
         arrays = load_topic_arrays(source, topic, strict=False)
         print(truncation_warning(prog, source, str(exc), int(arrays['log_time_ns'].size),
-                                 f'{topic} messages'), file=file or sys.stderr)
+                                 f'{topic} messages'), file=sys.stderr)
         return arrays
