@@ -139,13 +139,12 @@ def diagnose(path, params=None, method: str = 'auto', window_s: float = WINDOW_S
     reports = []
     snapshots = []   # every parameter's (value, std) after each report, as published
     fields = _STATE_FIELDS + tuple(_OPTIONAL_FIELDS)
-    cols = [states[f] for f in fields]
+    cols = [states[f].tolist() for f in fields]  # plain Python values, as a message has
     stamps = states['stamp_ns']
     s = SimpleNamespace()
     for k in range(stamps.size):
         for name, col in zip(fields, cols):
-            v = col[k]
-            setattr(s, name, v.item() if hasattr(v, 'item') else v)
+            setattr(s, name, col[k])
         for job in core.on_state(int(stamps[k]), s):
             reports.append(job.run())
             snapshots.append([(core.items[n].value, core.items[n].std) if n in core.items
