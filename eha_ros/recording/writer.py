@@ -89,14 +89,10 @@ class McapWriter:
         if chunk_size <= 0:
             raise ValueError(f'chunk_size must be positive, got {chunk_size}')
         self._compression = _compression(compression)
-        if isinstance(output, (str, os.PathLike)):
-            self.path: Optional[Path] = Path(output)
-            self._stream = open(self.path, 'wb' if overwrite else 'xb')
-            self._owns_stream = True
-        else:
-            self.path = None
-            self._stream = output
-            self._owns_stream = False
+        self._owns_stream = isinstance(output, (str, os.PathLike))
+        self.path: Optional[Path] = Path(output) if self._owns_stream else None
+        self._stream = (open(self.path, 'wb' if overwrite else 'xb') if self._owns_stream
+                        else output)
         self._chunk_size = int(chunk_size)
         self._flush_interval_s = flush_interval_s
         # The mcap writer never closes a chunk by itself: this class does (see write()).
