@@ -50,7 +50,7 @@ def summarise(trace: dict) -> dict:
 
 def _schema(title: str, properties: dict) -> bytes:
     return json.dumps({'type': 'object', 'title': title, 'properties': {
-        k: {'type': 'integer' if v.startswith('int') else v, 'description': k}
+        k: {'type': v, 'description': k}
         for k, v in properties.items()}}).encode()
 
 
@@ -76,13 +76,12 @@ def write_trace(path, traces: dict, wall_offset_ns: int) -> None:
             ch = w.register_channel(topic=TRACE_TOPIC + node, message_encoding='json',
                                     schema_id=tick_schema)
             cols = tr['ticks']
-            names = list(TRACE_COLUMNS)
-            rows = np.column_stack([cols[c] for c in names]).tolist() if len(cols['tick']) \
-                else []
+            rows = np.column_stack([cols[c] for c in TRACE_COLUMNS]).tolist() \
+                if len(cols['tick']) else []
             for seq, row in enumerate(rows):
                 t = int(row[1]) + wall_offset_ns
                 w.add_message(channel_id=ch, log_time=t, publish_time=t, sequence=seq,
-                              data=json.dumps(dict(zip(names, row))).encode())
+                              data=json.dumps(dict(zip(TRACE_COLUMNS, row))).encode())
             ch = w.register_channel(topic=EPISODES_TOPIC + node, message_encoding='json',
                                     schema_id=ep_schema)
             due = dict(zip(cols['tick'].tolist(), cols['due_ns'].tolist()))
