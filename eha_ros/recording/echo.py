@@ -36,9 +36,8 @@ PROG = 'eha-echo'
 
 def format_yaml(msg) -> str:
     """One message as a YAML document (field order kept), ending in ``---``."""
-    text = yaml.safe_dump(message_to_plain_data(msg), sort_keys=False, allow_unicode=True,
-                          default_flow_style=False, width=1 << 16)
-    return text + '---'
+    return yaml.safe_dump(message_to_plain_data(msg), sort_keys=False, allow_unicode=True,
+                          default_flow_style=False, width=1 << 16) + '---'
 
 
 def csv_row(msg) -> dict:

@@ -169,11 +169,9 @@ def main(argv: Optional[List[str]] = None) -> int:
         began = time.monotonic()
         while not stop.requested:
             start = time.monotonic()
-            first_log = None
-            last_clock = None
-            reader = McapReader(args.file, topics=list(selected), decode=False,
-                                strict=info.complete)
-            for msg in reader:
+            first_log = last_clock = None
+            for msg in McapReader(args.file, topics=list(selected), decode=False,
+                                  strict=info.complete):
                 if stop.requested:
                     break
                 if first_log is None:

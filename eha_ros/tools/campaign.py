@@ -139,8 +139,7 @@ def run_campaign(out: Path, scenarios=REFERENCE_SCENARIOS, models=GRAPH_MODELS,
               for (s, m) in runs}
     table, diagnoses = {}, {}
     for sc in scenarios:
-        files = [out / f'{sc}_{m}.mcap' for m in models]
-        loaded = [load_run(str(f)) for f in files]
+        loaded = [load_run(str(out / f'{sc}_{m}.mcap')) for m in models]
         result = compare_runs(loaded, reference=0)
         plot_runs(loaded, out / sc)
         table[sc] = {r['label']: r['relative_error'] for r in result['runs']}
