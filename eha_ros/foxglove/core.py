@@ -259,18 +259,17 @@ def parse_client_message(text) -> dict:
         if not isinstance(msg.get(field), list):
             raise ProtocolError(f'{op}: "{field}" must be a list')
     if op == 'subscribe':
-        for s in msg['subscriptions']:
-            if not (isinstance(s, dict) and _is_uint(s.get('id'))
-                    and _is_uint(s.get('channelId'))):
-                raise ProtocolError('subscribe: each subscription needs integer "id" and '
-                                    '"channelId"')
+        if not all(isinstance(s, dict) and _is_uint(s.get('id')) and _is_uint(s.get('channelId'))
+                   for s in msg['subscriptions']):
+            raise ProtocolError('subscribe: each subscription needs integer "id" and '
+                                '"channelId"')
     elif op == 'unsubscribe':
         if not all(_is_uint(i) for i in msg['subscriptionIds']):
             raise ProtocolError('unsubscribe: "subscriptionIds" must be integers')
     elif op == 'setParameters':
-        for p in msg['parameters']:
-            if not (isinstance(p, dict) and isinstance(p.get('name'), str)):
-                raise ProtocolError('setParameters: each parameter needs a "name"')
+        if not all(isinstance(p, dict) and isinstance(p.get('name'), str)
+                   for p in msg['parameters']):
+            raise ProtocolError('setParameters: each parameter needs a "name"')
     elif op in ('getParameters', 'subscribeParameterUpdates', 'unsubscribeParameterUpdates'):
         if not all(isinstance(n, str) for n in msg['parameterNames']):
             raise ProtocolError(f'{op}: "parameterNames" must be strings')
