@@ -56,15 +56,11 @@ def _parse_set(items):
         name, value = item.split('=', 1)
         if name not in SPEC_BY_NAME:
             raise ParameterError(f'--set: unknown parameter {name}')
-        values[name] = value if SPEC_BY_NAME[name].choices else _number(name, value)
+        try:
+            values[name] = value if SPEC_BY_NAME[name].choices else float(value)
+        except ValueError:
+            raise ParameterError(f'--set {name}={value!r}: not a number') from None
     return values
-
-
-def _number(name, text):
-    try:
-        return float(text)
-    except ValueError:
-        raise ParameterError(f'--set {name}={text!r}: not a number') from None
 
 
 def plot_result(result, path: Path) -> None:
