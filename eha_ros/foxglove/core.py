@@ -307,6 +307,7 @@ class _Client:
     def __init__(self, cid: int, ws, depth: int):
         self.id = cid
         self.ws = ws
+        self.remote = '%s:%s' % tuple(ws.remote_address[:2])
         self.queue = ClientQueue(depth)
         self.subs: Dict[int, int] = {}        # channel id -> subscription id
         self.params: set = set()              # parameter update subscriptions
@@ -314,7 +315,6 @@ class _Client:
         self.sending = 0                      # messages taken from the queue, not yet sent
         self.reported_drops = 0
         self.last_drop_status = 0.0
-        self.remote = ''
 
 
 class LiveServer:
@@ -495,7 +495,6 @@ class LiveServer:
             cid = self._next_client
             self._next_client += 1
             client = _Client(cid, ws, self.queue_depth)
-            client.remote = '%s:%s' % tuple(ws.remote_address[:2])
             self.clients[cid] = client
         loop = asyncio.get_running_loop()
         client.queue.wake = lambda: loop.call_soon_threadsafe(client.event.set)
