@@ -394,7 +394,8 @@ def test_tick_timing_final_report_covers_the_run_and_ends_the_reports(ros_env):
     from rclpy.node import Node
 
     from eha_ros.graph import RUN_ENDED
-    from eha_ros.nodes.common import subscribe, TickTiming
+    from eha_ros.nodes.common import subscribe
+    from eha_ros.nodes.timing import TickTiming
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))
     try:
@@ -441,7 +442,7 @@ def test_tick_timing_counts_late_slipped_and_overrun_ticks(ros_env):
     from diagnostic_msgs.msg import DiagnosticStatus
     from rclpy.node import Node
 
-    from eha_ros.nodes.common import TickTiming
+    from eha_ros.nodes.timing import TickTiming
     ms = 1_000_000
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))

@@ -28,11 +28,11 @@ from eha_ros.physics.commands import WAVEFORMS
 
 from eha_ros.graph import TOPIC_DIAGNOSTICS
 
-from .common import (advertise, apply_realtime_settings, begin_timing, check_choice, declare,
-                     declare_loop, declare_realtime, locked, MODES, node_loop, ns_to_stamp,
-                     run_node, stamp_to_ns, subscribe, take_changes, TickTiming, TOPIC_CLOCK,
-                     TOPIC_COMMAND, validator)
+from .common import (advertise, apply_realtime_settings, check_choice, declare, declare_loop,
+                     declare_realtime, locked, MODES, node_loop, ns_to_stamp, run_node,
+                     stamp_to_ns, subscribe, take_changes, TOPIC_CLOCK, TOPIC_COMMAND, validator)
 from .handshake import Handshake
+from .timing import begin_timing, TickTiming
 
 #: The waveform's parameters and their descriptions.
 _WAVE_PARAMS = {'amplitude_m': 'amplitude [m]',

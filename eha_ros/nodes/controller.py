@@ -48,11 +48,12 @@ from eha_ros.physics.events import CONTROLLER_RUNTIME, EventSchedule, parse_even
 from eha_ros.physics.params import replace
 from eha_ros.physics.plant import PositionController
 
-from .common import (advertise, apply_realtime_settings, begin_timing, check_choice, declare,
-                     declare_loop, declare_physics, declare_realtime, EventChannel, locked,
-                     MODES, node_loop, publish_status, run_node, stamp_to_ns, subscribe,
-                     TickTiming, TOPIC_COMMAND, TOPIC_SERVOVALVE, TOPIC_STATE, validator)
+from .common import (advertise, apply_realtime_settings, check_choice, declare, declare_loop,
+                     declare_physics, declare_realtime, EventChannel, locked, MODES, node_loop,
+                     publish_status, run_node, stamp_to_ns, subscribe, TOPIC_COMMAND,
+                     TOPIC_SERVOVALVE, TOPIC_STATE, validator)
 from .handshake import Handshake
+from .timing import begin_timing, TickTiming
 
 GAINS = CONTROLLER_RUNTIME
 

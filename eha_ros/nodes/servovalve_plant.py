@@ -93,12 +93,12 @@ from eha_ros.physics.bench import ConditionSensors, load_bench
 from eha_ros.physics.maintenance import PreflightCheck, ValveTest, VALVE_TEST_PROCEDURES
 from eha_ros.watchdog import SAFE_ACTIONS, TickWatchdog
 
-from .common import (advertise, apply_realtime_settings, begin_timing, check_choice, declare,
-                     declare_loop, declare_physics, declare_realtime, EventChannel, locked,
-                     MODES, node_loop, ns_to_stamp, publish_status, run_node, stamp_to_ns,
-                     subscribe, take_changes, take_waiting, TickTiming, TOPIC_CLOCK,
-                     TOPIC_SERVOVALVE, TOPIC_STATE, validator)
+from .common import (advertise, apply_realtime_settings, check_choice, declare, declare_loop,
+                     declare_physics, declare_realtime, EventChannel, locked, MODES, node_loop,
+                     ns_to_stamp, publish_status, run_node, stamp_to_ns, subscribe, take_changes,
+                     take_waiting, TOPIC_CLOCK, TOPIC_SERVOVALVE, TOPIC_STATE, validator)
 from .handshake import StartCoordinator
+from .timing import begin_timing, TickTiming
 
 #: The status of each operating condition (:func:`eha_ros.physics.state.operating_condition`).
 CONDITION_STATUS = {OK: ActuatorState.STATUS_OK, END_STOP: ActuatorState.STATUS_END_STOP,
