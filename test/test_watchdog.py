@@ -7,6 +7,7 @@ Every test that starts nodes runs in its own ROS domain with a temporary log fol
 are injected at a count of states the harness has received (not at a wall time), and no test
 passes or fails on wall-clock timing."""
 
+import math
 import os
 from pathlib import Path
 import signal
@@ -170,14 +171,19 @@ def test_a_dead_controller_trips_the_plants_command_watchdog(ros_env, tmp_path, 
         moving = np.mean(np.abs(st['jack_velocity_m_s'][:first][controlled]))
         assert controlled.sum() >= 100 and moving > 0
         assert np.median(np.abs(st['jack_velocity_m_s'][first + 20:])) < 0.2 * moving
-    else:  # the coil stays where the command in force put it: the stale ticks before the
-        # trip and every tick after it ran on that one command, so the coil current (its
-        # hysteresis play state unchanged, plus the torque motor's noise) is the same level
+    else:  # the coil stays where the command in force put it: the tick that took it, the
+        # stale ticks before the trip and every tick after it ran on that one command, so the
+        # coil current (its hysteresis play state unchanged, plus the torque motor's noise) is
+        # the same level.  (Under load the last command can answer a state over the timeout
+        # old, and the trip then follows it within a tick or two: few ticks before it.)
         noise = default_params().noise_std_a
         last_fresh = int(np.flatnonzero(st['command_age_ticks'] == 0)[-1])
-        stale, held = st['coil_current_a'][last_fresh + 1:first], st['coil_current_a'][first:]
-        assert stale.size >= 5 and held.size >= 50
-        assert abs(np.mean(held) - np.mean(stale)) < 2.5 * noise  # ~9 sigma of their difference
+        before, held = st['coil_current_a'][last_fresh:first], st['coil_current_a'][first:]
+        assert before.size >= 1 and held.size >= 50
+        # 6 sigma of the two means' difference, and never below 2.5 noise (a coil settling
+        # on the command's last small change)
+        bound = max(2.5, 6.0 * math.sqrt(1.0 / before.size + 1.0 / held.size)) * noise
+        assert abs(np.mean(held) - np.mean(before)) < bound, (before.size, held.size)
         assert np.std(held) < 1.5 * noise
     from eha_ros.recording.reader import scan
     info = scan(str(record), strict=True)
