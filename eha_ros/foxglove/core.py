@@ -352,7 +352,6 @@ class LiveServer:
         self._thread: Optional[threading.Thread] = None
         self._server = None
         self.port: Optional[int] = None
-        self.on_subscribed: Callable[[], None] = lambda: None
 
     # lifecycle ---------------------------------------------------------------------------
     def start(self, timeout_s: float = 10.0) -> 'LiveServer':
@@ -451,16 +450,6 @@ class LiveServer:
         frame = time_frame(int(t_ns))
         for c in self._clients():
             c.queue.put_data('time', frame)
-
-    def status(self, message: str, level: int = INFO, client_id: Optional[int] = None,
-               status_id: Optional[str] = None) -> None:
-        """A status message to one client or to all (never dropped)."""
-        msg = {'op': 'status', 'level': int(level), 'message': message}
-        if status_id:
-            msg['id'] = status_id
-        for c in self._clients():
-            if client_id is None or c.id == client_id:
-                c.queue.put_control(json.dumps(msg))
 
     def publish_parameter_values(self, values: Sequence[dict]) -> None:
         """Parameter updates to the clients subscribed to them."""
@@ -568,7 +557,6 @@ class LiveServer:
                         latched += [(ch, s['id'], t, p) for t, p in self._latched[ch.id]]
             for ch, sid, t, payload in latched:   # the history first, then live messages
                 client.queue.put_data(ch.topic, message_data(sid, t, payload))
-            self.on_subscribed()
         elif op == 'unsubscribe':
             gone = set(msg['subscriptionIds'])
             with self._lock:
