@@ -31,7 +31,7 @@ import time
 from typing import Callable, Dict, Iterable, List, Mapping, Optional, Sequence
 
 __all__ = ['SUBPROTOCOL', 'ChannelSpec', 'ChannelTable', 'ClientQueue', 'LiveServer',
-           'ProtocolError', 'message_data', 'time_frame', 'parse_client_message',
+           'ProtocolError', 'message_data', 'parse_client_message',
            'resolve_parameter', 'parse_endpoint', 'header_stamp_ns', 'decimated_topic']
 
 SUBPROTOCOL = 'foxglove.websocket.v1'
@@ -68,11 +68,6 @@ class ProtocolError(ValueError):
 def message_data(subscription_id: int, log_time_ns: int, payload: bytes) -> bytes:
     """A ``MESSAGE_DATA`` frame: opcode, subscription id (u32), log time (u64, ns), payload."""
     return struct.pack('<BIQ', OP_MESSAGE_DATA, subscription_id, log_time_ns) + payload
-
-
-def time_frame(t_ns: int) -> bytes:
-    """A ``TIME`` frame (the time capability): opcode and the server time (u64, ns)."""
-    return struct.pack('<BQ', OP_TIME, t_ns)
 
 
 def header_stamp_ns(cdr: bytes) -> Optional[int]:
@@ -447,7 +442,7 @@ class LiveServer:
                 client.queue.put_data(ch.topic, message_data(sid, t, payload))
 
     def broadcast_time(self, t_ns: int) -> None:
-        frame = time_frame(int(t_ns))
+        frame = struct.pack('<BQ', OP_TIME, int(t_ns))  # TIME: opcode, server time (u64, ns)
         for c in self._clients():
             c.queue.put_data('time', frame)
 
