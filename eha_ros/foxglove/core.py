@@ -355,16 +355,15 @@ class LiveServer:
         failure: list = []
 
         def run():
-            loop = asyncio.new_event_loop()
-            self._loop = loop
+            self._loop = loop = asyncio.new_event_loop()
             try:
                 loop.run_until_complete(self._open())
             except Exception as exc:  # reported to start()'s caller
                 failure.append(exc)
-                ready.set()
                 loop.close()
                 return
-            ready.set()
+            finally:
+                ready.set()
             try:
                 loop.run_forever()
             finally:
@@ -403,9 +402,8 @@ class LiveServer:
             while time.monotonic() < deadline and any(
                     len(c.queue) or c.sending for c in self._clients()):
                 await asyncio.sleep(0.01)
-            for c in self._clients():
-                if len(c.queue) or c.sending:
-                    left[c.id] = len(c.queue) + c.sending
+            left.update({c.id: len(c.queue) + c.sending for c in self._clients()
+                         if len(c.queue) or c.sending})
             for c in self._clients():
                 await c.ws.close(1001, 'server stopping')
             await self._server.wait_closed()
