@@ -179,8 +179,6 @@ def _duration(value) -> Dict[str, int]:
 
 def _policy(value) -> str:
     """An rclpy QoS policy enum (or a string) as ``rmw_qos_*_policy_to_str`` spells it."""
-    if isinstance(value, str):
-        return value.lower()
     return getattr(value, 'name', str(value)).lower()
 
 
