@@ -155,10 +155,8 @@ def type_hash(type_name: str) -> str:
     if path is None:
         return ''
     try:
-        data = json.loads(path.read_text(encoding='utf-8'))
-        wanted = f'{pkg}/msg/{name}'
-        for entry in data.get('type_hashes', ()):
-            if entry.get('type_name') == wanted:
+        for entry in json.loads(path.read_text(encoding='utf-8')).get('type_hashes', ()):
+            if entry.get('type_name') == f'{pkg}/msg/{name}':
                 return str(entry.get('hash_string', ''))
     except (OSError, ValueError, AttributeError):
         pass
@@ -212,8 +210,7 @@ def qos_profile_dict(qos=None) -> Dict[str, Any]:
 
 def qos_profiles_yaml(profiles: Optional[Sequence] = None) -> str:
     """``offered_qos_profiles`` channel metadata: a YAML list of :func:`qos_profile_dict`."""
-    if profiles is None:
-        profiles = [None]
+    profiles = [None] if profiles is None else profiles
     return yaml.safe_dump([qos_profile_dict(p) for p in profiles], sort_keys=False,
                           default_flow_style=False)
 
