@@ -94,10 +94,8 @@ def load_run(path: str, topic: str = TOPIC_STATE) -> Run:
     keep = np.ones(stamp.size, dtype=bool)
     keep[:-1] = stamp[1:] != stamp[:-1]          # last sample of each stamp
     idx = order[keep]
-    models = arrays.get('model')
-    model = ''
-    if models is not None and models.size:
-        model = Counter(str(m) for m in models).most_common(1)[0][0]
+    models = arrays.get('model', ())
+    model = Counter(map(str, models)).most_common(1)[0][0] if len(models) else ''
     return Run(label=model or Path(path).stem, path=str(path), model=model,
                time_s=stamp[keep] * 1e-9,
                signals={f: np.asarray(arrays[f][idx], dtype=float) for f, *_ in SIGNALS})
