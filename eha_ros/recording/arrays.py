@@ -44,10 +44,9 @@ def message_to_plain_data(msg) -> Any:
     return msg
 
 
-def flatten(msg, prefix: str = '') -> Dict[str, Any]:
+def flatten(msg) -> Dict[str, Any]:
     """Scalar fields of a message as ``{'a.b.c': value}`` (sequences as lists, in one key)."""
     out: Dict[str, Any] = {}
-    data = message_to_plain_data(msg) if not isinstance(msg, dict) else msg
 
     def walk(value, key):
         if isinstance(value, dict):
@@ -56,7 +55,7 @@ def flatten(msg, prefix: str = '') -> Dict[str, Any]:
         else:
             out[key] = value
 
-    walk(data, prefix)
+    walk(message_to_plain_data(msg), '')
     return out
 
 
