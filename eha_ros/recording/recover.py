@@ -124,9 +124,8 @@ def recover(source, output, *, overwrite: bool = False) -> dict:
                             'messages': sum(writer.message_counts.values()),
                             'loss_counted_from': how}
         writer.run_info = run
-        counts = dict(writer.message_counts)
-    return {'messages': counts, 'lost': lost, 'source_complete': reader.complete,
-            'problem': reader.problem, 'chunks': reader.chunks}
+    return {'messages': dict(writer.message_counts), 'lost': lost,
+            'source_complete': reader.complete, 'problem': reader.problem, 'chunks': reader.chunks}
 
 
 def main(argv: Optional[list] = None) -> int:
