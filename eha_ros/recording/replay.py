@@ -151,9 +151,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         publishers = {topic: node.create_publisher(graph.message_class(type_name), topic,
                                                    _publisher_qos(info, topic))
                       for topic, type_name in selected.items()}
-        synth_clock = None
-        if graph.TOPIC_CLOCK not in selected and not args.no_clock:
-            synth_clock = node.create_publisher(Clock, graph.TOPIC_CLOCK, graph.graph_qos())
+        synth_clock = (node.create_publisher(Clock, graph.TOPIC_CLOCK, graph.graph_qos())
+                       if graph.TOPIC_CLOCK not in selected and not args.no_clock else None)
         if args.wait_for_subscribers > 0:
             deadline = time.monotonic() + args.wait_for_subscribers
             waiting = list(publishers.values())
