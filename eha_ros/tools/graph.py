@@ -239,12 +239,9 @@ def build_config(args):
     file_params = read_params_file(args.params_file) if args.params_file else {}
     options = {'scenario': 'step_0p1', 'model': 'hf', 'mode': 'lockstep', 'rate_hz': 1000.0,
                'dt_s': 1e-6, 'seed': 0, 'integrator': EXPLICIT}
-    for (node, name), option in PROMOTED.items():
-        if name in file_params.get(node, {}):
-            options[option] = file_params[node][name]
-    for option in options:
-        if getattr(args, option) is not None:
-            options[option] = getattr(args, option)
+    options.update({option: file_params[node][name] for (node, name), option in PROMOTED.items()
+                    if name in file_params.get(node, {})})
+    options.update({o: getattr(args, o) for o in options if getattr(args, o) is not None})
     # a file's entries for what the harness owns are its defaults: left out
     node_params = {n: {k: v for k, v in values.items()
                        if k not in MANAGED and (n, k) not in PROMOTED}
