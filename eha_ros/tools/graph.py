@@ -287,8 +287,8 @@ def build_config(args):
         if not wanted:
             config.node_params.pop(node, None)
     try:
-        config.node_parameters()  # refuses unknown nodes, parameters and event targets
-        config.with_trace_files(config.node_parameters(), Path('.'))  # refuses a lockstep trace
+        # refuses unknown nodes, parameters and event targets, then a lockstep trace
+        config.with_trace_files(config.node_parameters(), Path('.'))
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     return config
