@@ -202,8 +202,8 @@ def node_defaults(descriptions: bool = False) -> dict:
 
 
 def _yaml_scalar(value) -> str:
-    text = yaml.safe_dump(value, default_flow_style=True, width=1 << 16).strip()
-    return text[:-4].strip() if text.endswith('\n...') else text.removesuffix('...').strip()
+    text = yaml.safe_dump(value, default_flow_style=True, width=1 << 16)
+    return text.strip().removesuffix('...').strip()  # a scalar document ends in '...'
 
 
 def defaults_yaml() -> str:
@@ -335,12 +335,11 @@ def summarize(result, processes: bool, recording_info=None) -> dict:
         'safe_action_ticks': int((st['safe_action'] != 0).sum()),
         'events': result.events,
     }
+    pace = result.sim_s / result.wall_s if result.wall_s > 0 else None
     if cfg.mode == 'lockstep':
-        out['simulated_s_per_wall_s'] = (result.sim_s / result.wall_s if result.wall_s > 0
-                                         else None)
-        out['resent_ticks'] = result.resent_ticks
+        out.update(simulated_s_per_wall_s=pace, resent_ticks=result.resent_ticks)
     else:
-        out['real_time_factor'] = result.sim_s / result.wall_s if result.wall_s > 0 else None
+        out['real_time_factor'] = pace
     if ticks.size:
         out['final_jack_position_m'] = float(st['jack_position_m'][-1])
         out['final_command_m'] = float(result.command['position_setpoint_m'][-1]) \
@@ -366,8 +365,7 @@ def summarize(result, processes: bool, recording_info=None) -> dict:
     return out
 
 
-def _print_text(summary: dict) -> None:
-    s = summary
+def _print_text(s: dict) -> None:
     state = 'complete' if s['complete'] else ('interrupted' if s['interrupted'] else
                                               'incomplete')
     print(f'{PROG}: {s["scenario"]} model {s["model"]}, {s["mode"]}, {s["layout"]}: {state}')
