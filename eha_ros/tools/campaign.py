@@ -205,20 +205,16 @@ def _finish_comparison(proc, folder: Path) -> dict:
 COMPARISON_SIGNALS = ('time_s', 'command_m', 'jack_position_m', 'p12_pa')
 
 
-def _compare(folder: Path, scenarios, models, seeds, progress, seed_models=None) -> dict:
+def _compare(folder: Path, scenarios, models, seeds, progress, seed_models) -> dict:
     """Physics-only comparison of ``models`` with hf (:mod:`eha_ros.evaluation`), noise
-    off against the yardstick and, for ``seed_models`` (default all), with noise over
+    off against the yardstick and, for ``seed_models`` (among ``models``), with noise over
     ``seeds`` seeds, run as two sweeps in this process (:mod:`eha_ros.sweep.comparison`:
     their datasets in ``folder/sweeps``); one plot per scenario."""
-    if not models:
-        return {}
     from eha_ros.evaluation import summarise
     from eha_ros.sweep.comparison import run_comparison
-    folder.mkdir(exist_ok=True)
-    seeded = [m for m in models if seed_models is None or m in seed_models]
     t0 = time.monotonic()
     done = run_comparison(folder / 'sweeps', scenarios, {'nominal': None}, models,
-                          seeded if seeds > 0 else (), seeds, signals=COMPARISON_SIGNALS,
+                          seed_models if seeds > 0 else (), seeds, signals=COMPARISON_SIGNALS,
                           in_process=True, warm=False, progress=False)
     res = {'models': list(models), 'seeds': int(seeds), 'noise_free': {}, 'noise': {}}
     for sc in scenarios:
