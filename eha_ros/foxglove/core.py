@@ -504,14 +504,10 @@ class LiveServer:
                 self.closed_clients.append(_stats(client, False))
 
     async def _send_loop(self, client: _Client):
-        q = client.queue
         while True:
             await client.event.wait()
             client.event.clear()
-            while True:
-                batch = q.take()
-                if not batch:
-                    break
+            while batch := client.queue.take():
                 client.sending = len(batch)
                 for _, item in batch:
                     await client.ws.send(item)
