@@ -23,6 +23,7 @@ import asyncio
 import collections
 import dataclasses
 import difflib
+import itertools
 import json
 import math
 import struct
@@ -339,7 +340,7 @@ class LiveServer:
         self.clients: Dict[int, _Client] = {}
         self.closed_clients: List[dict] = []
         self._lock = threading.Lock()
-        self._next_client = 1
+        self._client_ids = itertools.count(1)
         self._latched: Dict[int, collections.deque] = {
             c.id: collections.deque(maxlen=1000) for c in table.channels if c.latched}
         self._decimators = {c.id: Decimator(c.rate_hz) for c in table.channels if c.rate_hz}
@@ -474,10 +475,8 @@ class LiveServer:
             if sock is not None:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.send_buffer_b)
         with self._lock:
-            cid = self._next_client
-            self._next_client += 1
-            client = _Client(cid, ws, self.queue_depth)
-            self.clients[cid] = client
+            client = _Client(next(self._client_ids), ws, self.queue_depth)
+            self.clients[client.id] = client
         loop = asyncio.get_running_loop()
         client.queue.wake = lambda: loop.call_soon_threadsafe(client.event.set)
         caps = (['parameters', 'parametersSubscribe'] if self.parameters is not None else [])
@@ -500,7 +499,7 @@ class LiveServer:
         finally:
             sender.cancel()
             with self._lock:
-                self.clients.pop(cid, None)
+                self.clients.pop(client.id, None)
                 self.closed_clients.append(_stats(client, False))
 
     async def _send_loop(self, client: _Client):
