@@ -204,9 +204,8 @@ def check_output(path: str, numbered: bool = False) -> Path:
                        if p.stem[len(out.stem) + 1:].isdigit())
         if taken:
             raise RecorderError(f'{taken[0]} exists; refusing to overwrite it')
-    parent = out.parent if str(out.parent) else Path('.')
-    if not parent.is_dir():
-        raise RecorderError(f'output folder {str(parent)!r} does not exist')
+    if not out.parent.is_dir():
+        raise RecorderError(f'output folder {str(out.parent)!r} does not exist')
     return out
 
 
