@@ -323,9 +323,8 @@ class Recorder(Node):
         if self._file_started_ns is None:
             self._file_started_ns = log_ns
             return False
-        if self.max_bag_duration_ns and log_ns - self._file_started_ns >= self.max_bag_duration_ns:
-            return True
-        return bool(self.max_bag_size_b and self.writer.bytes_written() >= self.max_bag_size_b)
+        return (0 < self.max_bag_duration_ns <= log_ns - self._file_started_ns
+                or 0 < self.max_bag_size_b <= self.writer.bytes_written())
 
     def _callback(self, state: _TopicState):
         def on_message(data: bytes, info) -> None:
