@@ -64,16 +64,14 @@ def _time_fields(flat: Dict[str, Any]) -> Dict[str, Any]:
     and ``header.frame_id`` is dropped."""
     out: Dict[str, Any] = {}
     for key, value in flat.items():
-        if key.endswith('.nanosec') and key[:-8] + '.sec' in flat:
+        if key == 'header.frame_id' or (key.endswith('.nanosec') and key[:-8] + '.sec' in flat):
             continue
         if key.endswith('.sec') and key[:-4] + '.nanosec' in flat:
             base = key[:-4]
             ns = int(value) * 1_000_000_000 + int(flat[base + '.nanosec'])
             out['stamp_ns' if base == 'header.stamp' else base.replace('.', '_') + '_ns'] = ns
-            continue
-        if key == 'header.frame_id':
-            continue
-        out[key] = value
+        else:
+            out[key] = value
     return out
 
 
