@@ -375,8 +375,7 @@ def _report(s) -> str:
         valves = list(s['valve_test'])
         lines += ['| parameter | ' + ' | '.join(valves) + ' |',
                   '| --- |' + ' --- |' * len(valves)]
-        names = list(next(iter(s['valve_test'].values()))['true'])
-        for n in names:
+        for n in next(iter(s['valve_test'].values()))['true']:
             cells = [f'{d["true"][n]:.4g} / '
                      + (f'{e["value"]:.4g} +- {e["std"]:.2g} [{e["level"]}]'
                         if (e := d['estimates'].get(n)) else 'n/a')
