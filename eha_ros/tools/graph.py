@@ -46,6 +46,7 @@ after Ctrl-C/SIGTERM.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 from pathlib import Path
 import sys
@@ -501,6 +502,7 @@ def main(argv=None) -> int:
     from rclpy.exceptions import ParameterException
 
     from eha_ros.harness import GraphDataLoss, GraphError, run_graph
+    from eha_ros.isolation import ros_environment
     from eha_ros.physics import ParameterError
     from eha_ros.recording.stop import StopRequest
 
@@ -525,27 +527,20 @@ def main(argv=None) -> int:
         print(f'{PROG}: running {config.scenario} ({config.mode}): {where}; Ctrl-C stops',
               file=sys.stderr, flush=True)
 
-    stop = StopRequest()
-    env_cm = None
-    try:
-        env = None
-        if args.isolated:
-            from eha_ros.isolation import ros_environment
-            env_cm = ros_environment()
-            env = env_cm.__enter__()
-        result = run_graph(config, processes=args.processes, env=env, timeout_s=args.timeout,
-                           stop=lambda: stop.requested, on_start=started)
-    except GraphDataLoss as exc:  # the run ended, incomplete (or a node failed mid-run):
-        show(exc.result, bool(config.record) and Path(config.record).exists())  # what there is
-        return fail(exc, 1)  # and fail loudly
-    except (ParameterError, ParameterException, ValueError) as exc:
-        return fail(exc, 2)        # refused: by a node (GraphConfigError), or in this process
-    except GraphError as exc:
-        return fail(exc, 130 if stop.requested else 1)
-    finally:
-        stop.restore()
-        if env_cm is not None:
-            env_cm.__exit__(None, None, None)
+    with ros_environment() if args.isolated else contextlib.nullcontext() as env:
+        stop = StopRequest()
+        try:
+            result = run_graph(config, processes=args.processes, env=env, timeout_s=args.timeout,
+                               stop=lambda: stop.requested, on_start=started)
+        except GraphDataLoss as exc:  # the run ended, incomplete (or a node failed mid-run):
+            show(exc.result, bool(config.record) and Path(config.record).exists())  # what's there
+            return fail(exc, 1)  # and fail loudly
+        except (ParameterError, ParameterException, ValueError) as exc:
+            return fail(exc, 2)        # refused: by a node (GraphConfigError), or in this process
+        except GraphError as exc:
+            return fail(exc, 130 if stop.requested else 1)
+        finally:
+            stop.restore()
     summary = show(result, bool(config.record))
     if result.interrupted:
         return 130
