@@ -71,17 +71,13 @@ def compare_live(recorded: list, reports: list, core_items: list) -> dict:
     mism = []
     if len(recorded) != len(reports):
         mism.append(f'{len(recorded)} recorded, {len(reports)} replayed')
-    for k, (m, (r, items)) in enumerate(zip(recorded, zip(reports, core_items))):
+    for k, (m, r, items) in enumerate(zip(recorded, reports, core_items)):
         stamp = int(m['header.stamp.sec']) * 1_000_000_000 + int(m['header.stamp.nanosec'])
-        pairs = [('stamp', stamp, r.stamp_ns), ('level', m['level'], r.level),
-                 ('method', m['method'], r.method), ('message', m['message'], r.message),
-                 ('samples_used', m['samples_used'], r.samples_used)]
-        ok = all(a == b for _, a, b in pairs)
-        for key, val in (('radial_clearance_m', r.radial_clearance_m),
-                         ('radial_clearance_std_m', r.radial_clearance_std_m),
-                         ('overlap_m', r.overlap_m), ('overlap_std_m', r.overlap_std_m),
-                         ('pressure_residual_pa', r.pressure_residual_pa)):
-            ok &= _same(m[key], val)
+        ok = ((stamp, m['level'], m['method'], m['message'], m['samples_used'])
+              == (r.stamp_ns, r.level, r.method, r.message, r.samples_used))
+        ok &= all(_same(m[key], getattr(r, key)) for key in (
+            'radial_clearance_m', 'radial_clearance_std_m', 'overlap_m', 'overlap_std_m',
+            'pressure_residual_pa'))
         vals = m.get('parameter_values') or []
         stds = m.get('parameter_stds') or []
         ok &= len(vals) == len(items) and all(
