@@ -367,20 +367,24 @@ def collector():
 @settings(max_examples=150, deadline=None)
 @given(codes=st.lists(st.sampled_from([0, 0, 0, NULL, SAFE_CODES['hold']]), min_size=1,
                       max_size=60),
-       arrived=st.floats(0.0, 1.0), event_t=st.lists(st.integers(0, 80), max_size=4))
+       arrived=st.floats(0.0, 1.0), event_t=st.lists(st.integers(0, 80), max_size=4),
+       status=st.sampled_from(['none', 'behind', 'current', 'ahead']))
 def test_the_collector_waits_for_the_events_its_states_say_were_published(
-        collector, codes, arrived, event_t):
+        collector, codes, arrived, event_t, status):
     """For any run of states (the watchdog's flag changing at random) and scheduled plant
     events: the events in flight are the flag's changes and the events due before the last
     state, less those that arrived, so the harness waits for an event whose sample the
-    middleware still has to repeat instead of stopping without it."""
+    middleware still has to repeat instead of stopping without it; and, once the flag has
+    been raised, for the command watchdog's status that shows its last trip or resumption
+    (one the plant published ahead of a lost state counts as arrived)."""
     from eha_ros.msg import ActuatorState, GraphEvent
     from eha_ros.nodes.common import ns_to_stamp
     on_state = next(cb for _, cls, _, cb in collector._subs if cls is ActuatorState)
     for col in collector.state_cols.values():
         del col[:]
     collector.events.clear()
-    collector._watchdog_changes = 0
+    collector._watchdog_changes = collector._watchdog_trips = 0
+    collector.diagnostics.clear()
     times = sorted({t * 1e-3 for t in event_t})
     config = GraphConfig(events=[(t, 'servovalve_plant', {'clearance_m': 1e-6})
                                  for t in times])
@@ -400,4 +404,12 @@ def test_the_collector_waits_for_the_events_its_states_say_were_published(
         ev = GraphEvent(node='servovalve_plant', source=source)
         ns_to_stamp(ev.header.stamp, stamp_ns)
         collector._on_event(ev)
-    assert collector.events_in_flight(config) == len(sent) - n_arrived
+    trips = sum(1 for a, b in zip([0] + codes, codes) if b and not a)
+    if status != 'none':
+        shown = {'behind': (trips - 1, bool(codes[-1])) if trips > 1 else (trips, not codes[-1]),
+                 'current': (trips, bool(codes[-1])), 'ahead': (trips + 1, False)}[status]
+        collector.diagnostics['servovalve_plant: command watchdog'] = {'level': 0, 'values': {
+            'Trips since startup': str(shown[0]),
+            'Action in force': 'hold' if shown[1] else 'none'}}
+    behind = trips > 0 and status in ('none', 'behind')
+    assert collector.events_in_flight(config) == len(sent) - n_arrived + behind

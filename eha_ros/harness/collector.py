@@ -68,7 +68,7 @@ class Collector:
         self.handshake = Handshake(self.node)
         self._subs = []
         self._last_poll = 0.0
-        self._watchdog_changes = 0
+        self._watchdog_changes = self._watchdog_trips = 0
 
         cols, fields = self.state_cols, STATE_FIELDS + _STATE_COUNTS
 
@@ -77,8 +77,10 @@ class Collector:
                 cols[f].append(getattr(msg, f))
             cols['arrival_s'].append(now)
             cols['stamp_ns'].append(stamp_to_ns(msg.header.stamp))
-            if msg.safe_action != (cols['safe_action'][-1] if cols['safe_action'] else 0):
+            before = cols['safe_action'][-1] if cols['safe_action'] else 0
+            if msg.safe_action != before:
                 self._watchdog_changes += 1   # the plant published a trip or a resumption
+                self._watchdog_trips += not before
             cols['safe_action'].append(msg.safe_action)
 
         def on_command(msg, now):
@@ -143,11 +145,13 @@ class Collector:
             'changes': dict(zip(msg.parameter_names, (float(v) for v in msg.parameter_values)))})
 
     def events_in_flight(self, config) -> int:
-        """How many of the plant's events its states show it has published have not arrived:
-        a watchdog trip or resumption (the states' ``safe_action`` changed) and a scheduled
-        change (a state stamped a tick past its time).  ``/eha/events`` is reliable but apart
-        from the states: a sample lost on a loaded machine comes again only at the writer's
-        next heartbeat (seconds), after the states that followed it."""
+        """How many of the plant's events and statuses its states show it has published have
+        not arrived: a watchdog trip or resumption (the states' ``safe_action`` changed), a
+        scheduled change (a state stamped a tick past its time), and the command watchdog's
+        ``/diagnostics`` status after the last trip or resumption (its trip count and action
+        in force).  Each topic is reliable but apart from the states: a sample lost on a
+        loaded machine comes again only at the writer's next heartbeat (seconds), after the
+        states that followed it."""
         if not self.n_states:
             return 0
         period_ns = round(1e9 / config.rate_hz)
@@ -155,8 +159,15 @@ class Collector:
         scheduled = {t_s for t_s, node, _ in config.all_events()
                      if node == 'servovalve_plant' and round(t_s * 1e9) + period_ns <= last}
         seen = [e for e in self.events if e['node'] == 'servovalve_plant']
+        status = self.diagnostics.get('servovalve_plant: command watchdog', {}).get('values', {})
+        shown = (int(status.get('Trips since startup', 0)),
+                 status.get('Action in force', 'none') != 'none')
+        in_force = self.state_cols['safe_action'][-1] != 0
+        behind = self._watchdog_trips and (shown[0] < self._watchdog_trips or shown
+                                           == (self._watchdog_trips, not in_force))
         return (max(0, self._watchdog_changes - sum(e['source'] == 'watchdog' for e in seen))
-                + max(0, len(scheduled) - sum(e['source'] == 'schedule' for e in seen)))
+                + max(0, len(scheduled) - sum(e['source'] == 'schedule' for e in seen))
+                + int(bool(behind)))
 
     @property
     def n_states(self) -> int:
