@@ -25,14 +25,12 @@ Modules: :mod:`.config` (what a run is), :mod:`.result` (what it returned), :mod
 tests, the ``eha_graph`` fixture (``test/conftest.py``) does the same in an isolated domain.
 """
 
-from .collector import Collector, evaluate_reports, STATE_FIELDS
+from .collector import Collector
 from .config import (COLLECTOR, declared_parameters, GraphConfig, GraphConfigError, GraphError,
-                     rt_cpus, rt_pinning_warning, TICKING_NODES)
-from .result import describe_fault, GraphDataLoss, GraphFault, GraphResult, missing_ticks
-from .supervisor import FAULT_GRACE_S, FAULT_GRACE_WALL_S, GraphRun, HEARTBEAT_S, run_graph
+                     rt_pinning_warning)
+from .result import GraphDataLoss, GraphFault, GraphResult, missing_ticks
+from .supervisor import GraphRun, run_graph
 
 __all__ = ['GraphConfig', 'GraphResult', 'GraphError', 'GraphConfigError', 'GraphDataLoss',
            'GraphFault', 'GraphRun', 'run_graph', 'declared_parameters', 'COLLECTOR',
-           'TICKING_NODES', 'STATE_FIELDS', 'rt_cpus', 'rt_pinning_warning', 'describe_fault',
-           'evaluate_reports', 'missing_ticks', 'Collector', 'HEARTBEAT_S', 'FAULT_GRACE_S',
-           'FAULT_GRACE_WALL_S']
+           'rt_pinning_warning', 'missing_ticks', 'Collector']

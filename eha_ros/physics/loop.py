@@ -1,7 +1,6 @@
 """The plant's fixed-step kernel: :func:`advance` moves the state on by a number of steps, open
-or closed loop, with the high-fidelity fluid block or a surrogate's kernel, and :func:`run` /
-:func:`run_split` call its compiled forms; :class:`FluidBlock`, what a surrogate provides to be
-that kernel.
+or closed loop, with the high-fidelity fluid block or a surrogate's kernel, and :func:`run`
+calls its compiled forms; :class:`FluidBlock`, what a surrogate provides to be that kernel.
 
 Named ``loop`` for the time loop it holds (and the closed loop it may run): its arguments are
 grouped in named tuples (numba tuples): :class:`Clock` (which steps, of what length, under
@@ -30,7 +29,7 @@ from .valve import (chamber_step, chamber_step_implicit, net_flow, net_flow_cond
                     valve_coefficients, valve_constants)
 
 __all__ = ['Clock', 'ClosedLoop', 'OPEN_LOOP', 'P12', 'CHAMBER_FLOWS', 'FluidBlock',
-           'fluid_kernels', 'advance', 'run', 'run_split', 'pid', 'record',
+           'fluid_kernels', 'advance', 'run', 'pid', 'record',
            'SimulationDiverged', 'diverged']
 
 # state entries watched for divergence, in the order they are reported
@@ -408,21 +407,15 @@ def _run_split_kernel(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
 
 
 def run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, loops=None):
-    """The plant's kernel, explicit (:func:`advance`): the high-fidelity block's compiled form
-    comes from the disk cache; a surrogate's from its own ``loops`` (``(explicit, split)``,
-    each ``form(s, i_cmd, p, clock, loop, data)``, see :func:`fluid_kernels`), or else is
-    compiled once per process."""
+    """The plant's kernel (:func:`advance`), explicit or split as ``clock.substeps`` says: the
+    high-fidelity block's compiled forms come from the disk cache; a surrogate's from its own
+    ``loops`` (``(explicit, split)``, each ``form(s, i_cmd, p, clock, loop, data)``, see
+    :func:`fluid_kernels`), or else are compiled once per process."""
+    split = clock.substeps > 0
     if loops is not None:
-        return loops[0](s, i_cmd, p, clock, loop, data)
+        return loops[split](s, i_cmd, p, clock, loop, data)
     if p12_fn is None and flows_fn is None:
-        return _run_hf(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data)
-    return _run_kernel(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data)
-
-
-def run_split(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, loops=None):
-    """The plant's kernel, split (:func:`advance`); compiled forms as :func:`run`'s."""
-    if loops is not None:
-        return loops[1](s, i_cmd, p, clock, loop, data)
-    if p12_fn is None and flows_fn is None:
-        return _run_split_hf(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data)
-    return _run_split_kernel(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data)
+        form = _run_split_hf if split else _run_hf
+    else:
+        form = _run_split_kernel if split else _run_kernel
+    return form(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data)

@@ -38,7 +38,7 @@ from .commands import Scenario, get_scenario
 from .events import EventSchedule
 from .jack import quantise
 from .loop import (OPEN_LOOP, Clock, ClosedLoop, FluidBlock, diverged, fluid_kernels, pid,
-                   record, run, run_split)
+                   record, run)
 from .params import ParameterError, PlantParams, default_params
 from .stability import DT_S, EXPLICIT, check_dt, dt_to_ns, integrator_substeps
 from .state import N_REC, RECORD_FIELDS, S_SURF, STATE_NAMES, initial_state
@@ -149,9 +149,8 @@ class Plant:
         noise = self.noise.samples_until(t_end)
         clock = Clock(self.steps, int(n_steps), self.dt_s, self.dt_ns, noise,
                       self.params.noise_sample_time_s, self.substeps)
-        kernel = run_split if self.substeps else run
-        status, done, _, _ = kernel(self.state, float(current_command_a), self.params, clock,
-                                    OPEN_LOOP, *self._kernels)
+        status, done, _, _ = run(self.state, float(current_command_a), self.params, clock,
+                                 OPEN_LOOP, *self._kernels)
         self.steps += done
         if status:
             raise diverged(status, self.time_s)
@@ -251,7 +250,6 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
     substeps = integrator_substeps(integrator, dt_s)
     check_dt(p, dt_s, fluid, integrator)
     dt_ns = dt_to_ns(dt_s)
-    kernel = run_split if substeps else run
     period = dt_s if controller_period_s is None else float(controller_period_s)
     steps_per_tick = int(round(period / dt_s))
     if steps_per_tick < 1 or abs(steps_per_tick * dt_s - period) > 1e-9 * period:
@@ -288,7 +286,7 @@ def simulate(params: PlantParams | None = None, scenario='step_0p1', duration_s=
                       p.noise_sample_time_s, substeps)
         loop = ClosedLoop(ctrl, kind, args, com_t, com_v, steps_per_tick, rec_every,
                           -k0 % rec_every, rec[rows:])
-        status, done, new_rows, i_cmd = kernel(state, i_cmd, q, clock, loop, *kernels)
+        status, done, new_rows, i_cmd = run(state, i_cmd, q, clock, loop, *kernels)
         rows += new_rows
         if status:
             raise diverged(status, ((n0 + done) * dt_ns) * 1e-9)
