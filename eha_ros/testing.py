@@ -66,11 +66,6 @@ def message_class(name: str) -> type:
     return graph.message_class(name if '/' in name else f'eha_ros/msg/{name}')
 
 
-def _constants(cls: type) -> Dict[str, object]:
-    return {n: getattr(cls, n) for n in dir(cls)
-            if n.isupper() and not n.startswith('_') and not callable(getattr(cls, n))}
-
-
 def _float32(value: float) -> float:
     return struct.unpack('<f', struct.pack('<f', value))[0]
 
@@ -98,7 +93,8 @@ def _sample_value(cls: type, name: str, type_name: str, index: int):
     if type_name == 'boolean':
         return True
     if type_name in _INT_LIMITS:
-        group = {k: v for k, v in _constants(cls).items() if k.startswith(name.upper() + '_')}
+        group = {n: getattr(cls, n) for n in dir(cls) if n.startswith(name.upper() + '_')
+                 and n.isupper() and not callable(getattr(cls, n))}
         if group:
             return max(group.values())  # a named constant, and not the default (0)
         if name == 'sec':

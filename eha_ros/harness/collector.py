@@ -181,7 +181,7 @@ class Collector:
     def last_status(self) -> int:
         return self.state_cols['status'][-1]
 
-    def final_answers_in(self, config) -> bool:
+    def final_answers_in(self) -> bool:
         """Lockstep: the command and the current command of the last state's tick arrived."""
         if not self.n_states:
             return True

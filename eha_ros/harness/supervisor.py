@@ -339,7 +339,7 @@ class GraphRun:
             collector.poll(force=True)
             if time.monotonic() < end:
                 continue
-            if config.mode == 'lockstep' and not collector.final_answers_in(config):
+            if config.mode == 'lockstep' and not collector.final_answers_in():
                 continue
             if collector.events_in_flight(config) or (to_end and not collector.timing_ended()):
                 continue

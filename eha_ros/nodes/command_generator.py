@@ -64,7 +64,7 @@ class CommandGenerator(Node):
                                   "scenario's duration; a custom waveform's is 1e9 s)", 0.0, 1e9)
         realtime = declare_realtime(self)
         loop_options = declare_loop(self)
-        self.scenario = self._build(self._values())
+        self.scenario = self._build()
         self.scenario.value(0.0)  # compile the command kernel now, not in the first tick
         check_choice('mode', self.mode, MODES)
         self.add_on_set_parameters_callback(validator(self._on_set))
@@ -101,13 +101,10 @@ class CommandGenerator(Node):
         self._rt_next = 0
         self.slipped_ticks = 0
 
-    def _values(self, changes=None) -> dict:
-        names = ('scenario', 'waveform', *_WAVE_PARAMS)
-        d = {n: self.get_parameter(n).value for n in names}
+    def _build(self, changes=None) -> Scenario:
+        """The scenario the node's parameters (with ``changes`` applied) name or describe."""
+        d = {n: self.get_parameter(n).value for n in ('scenario', 'waveform', *_WAVE_PARAMS)}
         d.update(changes or {})
-        return d
-
-    def _build(self, d) -> Scenario:
         if d['scenario']:
             if d['scenario'] not in self._scenarios:
                 raise ParameterError(f'unknown scenario {d["scenario"]!r} (known: '
@@ -125,7 +122,7 @@ class CommandGenerator(Node):
             raise ParameterError('rate_hz cannot change while running')
         take_changes(self, changes, max_catch_up=int, duration_s=float)
         if set(changes) & (set(_WAVE_PARAMS) | {'scenario', 'waveform'}):
-            self.scenario = self._build(self._values(changes))
+            self.scenario = self._build(changes)
 
     def _publish(self, t_ns: int, stamp=None, stamp_ns=None) -> int:
         """The command of scenario time ``t_ns``, stamped ``stamp`` (a message) or

@@ -359,7 +359,5 @@ def cluster(workers: int | None = None, scheduler: str | None = None):
 def _close(client, cluster) -> None:
     for what in (client, cluster):
         if what is not None:
-            try:
+            with contextlib.suppress(Exception):  # best effort: the results are on disk
                 what.close(timeout=10)
-            except Exception:  # closing is best effort: the results are on disk
-                pass

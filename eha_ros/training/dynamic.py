@@ -29,6 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from eha_ros.physics import PlantParams, default_params
+from eha_ros.physics.maps import spool_grid
+from eha_ros.physics.params import replace
+from eha_ros.physics.valve import edge_constants, fluid_constants
 
 from eha_ros.artefacts import models_dir, save_artefact
 from eha_ros.surrogates.registry import load_surrogate
@@ -36,7 +39,7 @@ from eha_ros.surrogates.dga import GA_GENES
 from eha_ros.surrogates.dlut import log_axis
 from eha_ros.surrogates.dnn import DNN_WIDTH, dnn_features
 from eha_ros.surrogates.edge import (DP_MAX_PA, EDGE_PARAMETERS, edge_conductance, edge_flows,
-                                     edge_hash, valid_range)
+                                     edge_hash, hf_chamber_flows, valid_range)
 from eha_ros.surrogates.nn import fit_output
 
 __all__ = ['DLUT_GRID', 'DNN_SETTINGS', 'DGA_SETTINGS', 'sample_points', 'loop_points',
@@ -132,7 +135,6 @@ def null_points(n: int, rng: np.random.Generator, p: PlantParams):
 def edge_errors(surrogate, n: int = 20000, seed: int = 1, params: PlantParams | None = None):
     """Relative edge-flow errors ``|q_fit / q - 1|`` of a dynamic surrogate on fresh random
     points (:func:`sample_points`), as mean / p99 / max."""
-    from eha_ros.physics.params import replace
     p = params if params is not None else default_params()
     s, dp, c = sample_points(n, np.random.default_rng(seed), p)
     out = np.empty(n)
@@ -153,10 +155,6 @@ def chamber_errors(surrogate, params: PlantParams | None = None, wear=None, n_xs
     pressures (vapour pressure to 1.2 x supply), relative to the largest |flow| at each spool
     position; per wear pair ``(overlap, clearance)`` (default: nominal and two off-grid
     points).  Returns max and RMS per wear pair."""
-    from eha_ros.physics.maps import spool_grid
-    from eha_ros.physics.params import replace
-
-    from eha_ros.surrogates.edge import hf_chamber_flows
     p = params if params is not None else default_params()
     wear = wear if wear is not None else [(p.overlap_supply_m, p.radial_clearance_m),
                                           (-1.3e-6, 1.7e-6), (4.1e-6, 4.6e-6)]
@@ -237,7 +235,6 @@ def build_dlut(params: PlantParams | None = None, grid: dict | None = None):
 
 def _hf_coefficients(p: PlantParams):
     """The hf model's values of the closed form's genes (for the record, never a start)."""
-    from eha_ros.physics.valve import edge_constants, fluid_constants
     vc = edge_constants(1.0, 0.0, 0.0, *fluid_constants(p))
     return np.array([vc[1], 3.0, vc[2], vc[3]])
 
@@ -252,7 +249,6 @@ def _scales(p: PlantParams):
     """Order-of-magnitude scales of the coefficients from textbook values (laminar slit
     ``12 mu / w``, orifice ``2 rho / (0.6^2 w^2)``, ``mu^2 100^2 / (16 0.6^2 w^2)``): the GA
     searches decades around them, so it is told units, not answers."""
-    from eha_ros.physics.valve import fluid_constants
     w, mu = p.port_width_m, fluid_constants(p).mu_pa_s
     return np.array([12.0 * mu / w, 1.0, 2.0 * p.fluid_density_kg_m3 / (0.36 * w * w),
                      mu * mu * 1e4 / (16.0 * 0.36 * w * w)])
