@@ -160,11 +160,10 @@ class Collector:
                      if node == 'servovalve_plant' and round(t_s * 1e9) + period_ns <= last}
         seen = [e for e in self.events if e['node'] == 'servovalve_plant']
         status = self.diagnostics.get('servovalve_plant: command watchdog', {}).get('values', {})
-        shown = (int(status.get('Trips since startup', 0)),
-                 status.get('Action in force', 'none') != 'none')
+        trips, shown = self._watchdog_trips, int(status.get('Trips since startup', 0))
         in_force = self.state_cols['safe_action'][-1] != 0
-        behind = self._watchdog_trips and (shown[0] < self._watchdog_trips or shown
-                                           == (self._watchdog_trips, not in_force))
+        behind = trips and (shown < trips or shown == trips and in_force
+                            != (status.get('Action in force', 'none') != 'none'))
         return (max(0, self._watchdog_changes - sum(e['source'] == 'watchdog' for e in seen))
                 + max(0, len(scheduled) - sum(e['source'] == 'schedule' for e in seen))
                 + int(bool(behind)))
