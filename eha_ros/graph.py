@@ -122,6 +122,11 @@ STATUS_STOPPED = 6
 STATUS_NAMES = ('OK', 'END_STOP', 'CAVITATION', 'DIVERGED', 'VALVE_TEST', 'PREFLIGHT',
                 'STOPPED')
 
+#: The ``ActuatorState`` fields that carry the plant's state (its ``snapshot()``'s names).
+SNAPSHOT_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_s',
+                   'spool_position_m', 'flapper_position_m', 'p1_pa', 'p2_pa', 'p12_pa',
+                   'load_flow_m3_s', 'coil_current_a', 'torque_motor_force_n')
+
 #: Name of a node's timing status on ``/diagnostics``: ``'<node>: timing'`` (the health
 #: monitor's statuses have other names).
 TIMING_SUFFIX = ': timing'

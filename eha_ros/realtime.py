@@ -83,13 +83,6 @@ _MAX_FIFO_PRIORITY = 99
 _CAP_IPC_LOCK = 14
 
 
-def _machine_cpus() -> set[int]:
-    cpus = set(range(os.cpu_count() or 1))
-    with suppress(AttributeError, OSError):
-        cpus |= os.sched_getaffinity(0)
-    return cpus
-
-
 def _is_int(value) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
@@ -120,7 +113,9 @@ class RealtimeSettings:
         bad = [c for c in cpus if not _is_int(c) or c < 0]
         if bad:
             raise ValueError(f'cpu_affinity must hold non-negative integers, got {bad[0]!r}')
-        machine = _machine_cpus()
+        machine = set(range(os.cpu_count() or 1))
+        with suppress(AttributeError, OSError):
+            machine |= os.sched_getaffinity(0)
         missing = sorted(set(cpus) - machine)
         if missing:
             raise ValueError(f'cpu_affinity names CPUs {missing} that this machine does not '
@@ -168,14 +163,6 @@ def normal_scheduling(cpus=None) -> None:
 
 # --- applying ---------------------------------------------------------------------------------
 
-def _mcl_flags() -> tuple[int, int]:
-    """``(MCL_CURRENT, MCL_FUTURE)`` of this architecture."""
-    machine = os.uname().machine
-    if machine.startswith(('ppc', 'powerpc', 'sparc', 'alpha')):
-        return 0x2000, 0x4000
-    return 1, 2
-
-
 def _libc():
     return ctypes.CDLL(None, use_errno=True)
 
@@ -197,15 +184,8 @@ def _status_field(name: str) -> str | None:
     return None
 
 
-def _has_capability(cap: int) -> bool:
-    eff = _status_field('CapEff')
-    return eff is not None and bool(int(eff, 16) >> cap & 1)
-
-
 def _limit_text(limit: int, unit: int = 1, suffix: str = '') -> str:
-    if limit == resource.RLIM_INFINITY:
-        return 'unlimited'
-    return f'{limit // unit}{suffix}'
+    return 'unlimited' if limit == resource.RLIM_INFINITY else f'{limit // unit}{suffix}'
 
 
 def _thread_ids() -> list[int]:
@@ -255,11 +235,14 @@ def _reason(e: OSError) -> str:
 
 
 def _lock_memory() -> str | None:
-    current, future = _mcl_flags()
+    # MCL_CURRENT, MCL_FUTURE of this architecture
+    other = os.uname().machine.startswith(('ppc', 'powerpc', 'sparc', 'alpha'))
+    current, future = (0x2000, 0x4000) if other else (1, 2)
     libc = _libc()
     soft = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
     if libc.mlockall(current | future) == 0:
-        if soft != resource.RLIM_INFINITY and not _has_capability(_CAP_IPC_LOCK):
+        eff = _status_field('CapEff')  # the effective capabilities
+        if soft != resource.RLIM_INFINITY and not (eff and int(eff, 16) >> _CAP_IPC_LOCK & 1):
             return (f'lock_memory applied, but RLIMIT_MEMLOCK is {_limit_text(soft, 1024)} KiB '
                     f'and new memory is locked as it is mapped: an allocation beyond that '
                     f'fails; set `ulimit -l unlimited` or a `memlock unlimited` line in '

@@ -234,9 +234,7 @@ def main(argv=None) -> int:
     parser.add_argument('command', choices=('pub', 'sub'))
     parser.add_argument('--timeout', type=float, default=20.0, help='seconds (default 20)')
     args = parser.parse_args(argv)
-    if args.command == 'pub':
-        return run_publisher(args.timeout)
-    return run_subscriber(args.timeout)
+    return run_publisher(args.timeout) if args.command == 'pub' else run_subscriber(args.timeout)
 
 
 if __name__ == '__main__':

@@ -113,15 +113,6 @@ def _open(path):
         return -1
 
 
-def _sched_getcpu():
-    try:
-        fn = ctypes.CDLL(None).sched_getcpu
-        fn.restype = ctypes.c_int
-        return fn
-    except (AttributeError, OSError):
-        return lambda: -1
-
-
 TRACE_COLUMNS = {
     # per tick
     'tick': 'the tick (sample) index k: due at the anchor plus k periods',
@@ -164,7 +155,11 @@ class TickTrace:
         self.gc = gc
         self._schedstat = _open('/proc/thread-self/schedstat')  # reopened by the loop thread
         self._stat = _open('/proc/stat')
-        self._getcpu = _sched_getcpu()
+        try:
+            self._getcpu = ctypes.CDLL(None).sched_getcpu
+            self._getcpu.restype = ctypes.c_int
+        except (AttributeError, OSError):
+            self._getcpu = lambda: -1
         self._wake_first = 0
         self._woke = self._ran = 0
         self._slept = -1
@@ -386,9 +381,7 @@ def late_episodes(trace: dict, period_ns: int, clk_tck: int = 100) -> list[dict]
             a = np.asarray(trace[col])
             end = a[j]
             start = a[prev] if prev >= 0 else a[i]
-            if end < 0 or start < 0:
-                return None
-            return float(end - start) * scale
+            return None if end < 0 or start < 0 else float(end - start) * scale
 
         # our own previous work: the thread went to sleep after this tick fell due (the last
         # wake's ticks, its evidence and any wait for the GIL before it slept)

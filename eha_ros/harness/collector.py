@@ -14,7 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 
-from eha_ros.graph import (QOS_DEPTH, RUN_ENDED, TIMING_SUFFIX, TOPIC_COMMAND,
+from eha_ros.graph import (QOS_DEPTH, RUN_ENDED, SNAPSHOT_FIELDS, TIMING_SUFFIX, TOPIC_COMMAND,
                            TOPIC_DIAGNOSTICS, TOPIC_EVENTS, TOPIC_HEALTH, TOPIC_SERVOVALVE,
                            TOPIC_STATE, graph_qos, topic_qos)
 from eha_ros.msg import (ActuatorCommand, ActuatorState, GraphEvent, HealthStatus,
@@ -26,11 +26,8 @@ from eha_ros.recording.definitions import SequenceGapCounter
 from .config import COLLECTOR, TICKING_NODES
 from .result import GraphResult, missing_ticks
 
-STATE_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity_m_s',
-                'spool_position_m', 'flapper_position_m', 'p1_pa', 'p2_pa', 'p12_pa',
-                'load_flow_m3_s', 'coil_current_a', 'torque_motor_force_n', 'sim_time_s',
-                'supply_pressure_measured_pa', 'return_pressure_measured_pa',
-                'fluid_temperature_measured_k')
+STATE_FIELDS = SNAPSHOT_FIELDS + ('sim_time_s', 'supply_pressure_measured_pa',
+                                  'return_pressure_measured_pa', 'fluid_temperature_measured_k')
 #: Integer fields of the state kept as they are (a flag as 0 or 1).
 _STATE_COUNTS = ('tick', 'status', 'valve_test_point', 'valve_test_point_end',
                  'valve_test_procedure', 'command_age_ticks')

@@ -168,7 +168,12 @@ class GraphConfig:
                 raise GraphConfigError(f'node_params: no node {node!r} in this graph '
                                        f'(nodes: {", ".join(out)})')
             out[node].update(values)
-        _check_declared(out)
+        declared = declared_parameters()
+        for node, values in out.items():
+            for name in values:
+                if name not in declared.get(node, ()):
+                    raise GraphConfigError(undeclared_message(node, name,
+                                                              declared.get(node, ())))
         return out
 
     def traced_nodes(self, params: dict) -> list:
@@ -227,11 +232,3 @@ def declared_parameters() -> dict:
     data = yaml.safe_load((config_dir() / 'graph.yaml').read_text(encoding='utf-8'))
     return {str(node).strip('/'): set(section['ros__parameters']) | {'use_sim_time'}
             for node, section in data.items()}
-
-
-def _check_declared(params: dict) -> None:
-    declared = declared_parameters()
-    for node, values in params.items():
-        for name in values:
-            if name not in declared.get(node, ()):
-                raise GraphConfigError(undeclared_message(node, name, declared.get(node, ())))

@@ -70,19 +70,14 @@ def _ros_arg(value) -> str:
         return value if value else "''"
     if isinstance(value, (list, tuple)):
         if value and all(isinstance(v, str) for v in value):
-            return '[' + ', '.join(_quote(v) for v in value) + ']'
+            # quoted YAML flow entries, so that ``:``, ``,`` and ``=`` inside stay text
+            return '[' + ', '.join("'" + v.replace("'", "''") + "'" for v in value) + ']'
         if value and all(isinstance(v, bool) for v in value):
             return '[' + ', '.join(_ros_arg(v) for v in value) + ']'
         if value and all(isinstance(v, int) for v in value):
             return '[' + ', '.join(str(v) for v in value) + ']'
         return '[' + ', '.join(f'{float(v):.17e}' for v in value) + ']'
     return repr(value)
-
-
-def _quote(text: str) -> str:
-    """A string array entry for ``-p name:=[...]`` (YAML flow sequence): quoted, so that
-    ``:``, ``,`` and ``=`` inside it stay text."""
-    return "'" + text.replace("'", "''") + "'"
 
 
 class GraphRun:
@@ -207,7 +202,7 @@ class GraphRun:
                                                  stderr=subprocess.STDOUT, cwd=self.log_dir,
                                                  preexec_fn=_stop_with_parent), out)
         else:
-            node = _node_class(name)(context=self.context, parameter_overrides=[
+            node = NODE_CLASSES[name](context=self.context, parameter_overrides=[
                 Parameter(k, value=v) for k, v in self.params[name].items()])
             refuse_undeclared(node)
             self.nodes.append(node)
@@ -439,9 +434,9 @@ def run_graph(config: GraphConfig | None = None, **options) -> GraphResult:
         return run.wait()
 
 
-def _node_class(name: str):
-    return {'command_generator': CommandGenerator, 'controller': Controller,
-            'servovalve_plant': ServovalvePlant, 'health_monitor': HealthMonitor}[name]
+#: The graph's node classes, by their names (:data:`eha_ros.graph.NODES`).
+NODE_CLASSES = {'command_generator': CommandGenerator, 'controller': Controller,
+                'servovalve_plant': ServovalvePlant, 'health_monitor': HealthMonitor}
 
 
 def _exit_message(name: str, code: int, log_dir: Path) -> str:
@@ -454,15 +449,11 @@ def _exit_message(name: str, code: int, log_dir: Path) -> str:
                                 f'completed (log: {log}): ' + ' | '.join(lines[-3:]))
 
 
-def _libc_prctl():
-    try:
-        return ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):
-        return None
-
-
 #: ``prctl`` (Linux), resolved here: the child between fork and exec must not load anything.
-_PRCTL = _libc_prctl()
+try:
+    _PRCTL = ctypes.CDLL(None, use_errno=True).prctl
+except (OSError, AttributeError):
+    _PRCTL = None
 
 
 def _stop_with_parent() -> None:

@@ -337,9 +337,6 @@ class FaultModel:
 def load_faults(path: Path | None = None) -> FaultModel:
     """The shipped pre-flight network (:data:`FAULTS_FILE`)."""
     path = Path(path) if path is not None else models_dir('health') / FAULTS_FILE
-    if not path.is_file():
-        raise ArtefactError(f'{path}: no pre-flight fault network: build it with python -m '
-                            f'{REBUILD}')
     return read_faults(path)
 
 

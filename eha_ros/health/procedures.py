@@ -161,14 +161,11 @@ class ValveTestProcedure(Procedure):
 
     def warm_up(self) -> None:
         p = self.spec.point_params({})
-        transient_map([0.0], self.flows()[0], params=p)
+        transient_map([0.0], self.schedule()['flows_m3_s'][0], params=p)
         steady_map([0.0], 0.0, params=p)
 
     def schedule(self) -> dict:
         return valve_test_schedule(self.spec.valve_test_procedure, self.spec.flows_m3_s)
-
-    def flows(self) -> tuple:
-        return self.schedule()['flows_m3_s']
 
     def run_point(self, point) -> list:
         (c,) = point.cases

@@ -163,9 +163,6 @@ class FitCalibration:
 def load_calibration(path: Path | None = None) -> FitCalibration:
     """The shipped calibration (:data:`FIT_FILE`)."""
     path = Path(path) if path is not None else models_dir('health') / FIT_FILE
-    if not path.is_file():
-        raise ArtefactError(f'{path}: no valve-fit calibration: build it with python -m '
-                            f'{REBUILD}')
     return read_calibration(path)
 
 

@@ -78,13 +78,9 @@ class DiagnosticModel:
     weights: list           # [(W (d_in, d_out), b (d_out,)), ...]
     meta: dict
 
-    @property
-    def symmetric(self) -> bool:
-        return bool(self.meta.get('symmetric', False))
-
     def forward(self, p12_curves_pa, q_m3_s):
         """``(n, 2)`` (clearance, overlap) [m] for curves ``(n, 133)`` [Pa] and flows ``(n,)``."""
-        if self.symmetric:
+        if self.meta.get('symmetric', False):  # trained on the canonical curves
             p12_curves_pa, q_m3_s = canonical_curves(p12_curves_pa, q_m3_s)
         x = np.concatenate([p12_curves_pa, q_m3_s[:, None]], axis=1)
         h = mlp_forward(self.weights, (x - self.in_norm[0]) / self.in_norm[1])
@@ -134,19 +130,6 @@ def _read_diagnostic(path: Path) -> DiagnosticModel:
 read_diagnostic = CachedReader(_read_diagnostic)
 
 
-def _curves(model: DiagnosticModel, p12, xs_m):
-    p12 = np.atleast_2d(np.asarray(p12, dtype=float))
-    if xs_m is not None:
-        xs_m = np.asarray(xs_m, dtype=float)
-        p12 = np.stack([np.interp(model.xs_m, xs_m, c) for c in p12])
-    if p12.shape[1] != model.xs_m.size:
-        raise ValueError(f'a curve holds {model.xs_m.size} pressures on the spool grid '
-                         f'(got {p12.shape[1]}); pass xs_m to resample another grid')
-    if not np.all(np.isfinite(p12)):
-        raise ValueError('pressures must be finite')
-    return p12
-
-
 def estimate_wear_batch(p12_curves_pa, q_m3_s, xs_m=None, model: DiagnosticModel | None = None,
                         ):
     """Clearance [m] and overlap [m] arrays, one per curve.
@@ -160,7 +143,14 @@ def estimate_wear_batch(p12_curves_pa, q_m3_s, xs_m=None, model: DiagnosticModel
         Imposed flow [m^3/s] of each curve.
     """
     m = model if model is not None else load_diagnostic()
-    p12 = _curves(m, p12_curves_pa, xs_m)
+    p12 = np.atleast_2d(np.asarray(p12_curves_pa, dtype=float))
+    if xs_m is not None:
+        p12 = np.stack([np.interp(m.xs_m, np.asarray(xs_m, dtype=float), c) for c in p12])
+    if p12.shape[1] != m.xs_m.size:
+        raise ValueError(f'a curve holds {m.xs_m.size} pressures on the spool grid '
+                         f'(got {p12.shape[1]}); pass xs_m to resample another grid')
+    if not np.all(np.isfinite(p12)):
+        raise ValueError('pressures must be finite')
     q = np.broadcast_to(np.asarray(q_m3_s, dtype=float), (p12.shape[0],))
     out = m.forward(p12, np.ascontiguousarray(q))
     return out[:, 0], out[:, 1]

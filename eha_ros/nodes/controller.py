@@ -264,14 +264,12 @@ class Controller(Node):
             if self._plant_done:
                 self.timing.publish_final()  # the plant's last state: the run has ended
             return
-        if self.mode == 'lockstep':
-            t_ns = stamp_to_ns(msg.header.stamp)
-            if t_ns == self._answered[0]:
-                self._send(msg.header.stamp, self._answered[1])  # the plant asks again
-                return
-            self._state_ns = t_ns
-            self._state_measured = msg.jack_position_measured_m
-            self._try_answer()
+        if self._stamp_ns == self._answered[0]:  # lockstep: the plant asks again
+            self._send(msg.header.stamp, self._answered[1])
+            return
+        self._state_ns = self._stamp_ns
+        self._state_measured = msg.jack_position_measured_m
+        self._try_answer()
 
     def _try_answer(self):
         t_ns = self._state_ns

@@ -80,7 +80,7 @@ from rclpy.clock import Clock as RosClock, ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
-from eha_ros.graph import MODELS
+from eha_ros.graph import MODELS, SNAPSHOT_FIELDS
 from eha_ros.msg import ActuatorState, ServovalveCommand
 from eha_ros.physics import (ParameterError, Plant, SimulationDiverged, get_scenario,
                              load_params)
@@ -420,17 +420,8 @@ class ServovalvePlant(Node):
         msg.supply_pressure_measured_pa = float(c[0])
         msg.return_pressure_measured_pa = float(c[1])
         msg.fluid_temperature_measured_k = float(c[2])
-        msg.jack_position_m = s['jack_position_m']
-        msg.jack_position_measured_m = s['jack_position_measured_m']
-        msg.jack_velocity_m_s = s['jack_velocity_m_s']
-        msg.spool_position_m = s['spool_position_m']
-        msg.flapper_position_m = s['flapper_position_m']
-        msg.p1_pa = s['p1_pa']
-        msg.p2_pa = s['p2_pa']
-        msg.p12_pa = s['p12_pa']
-        msg.load_flow_m3_s = s['load_flow_m3_s']
-        msg.coil_current_a = s['coil_current_a']
-        msg.torque_motor_force_n = s['torque_motor_force_n']
+        for name in SNAPSHOT_FIELDS:
+            setattr(msg, name, s[name])
         msg.sim_time_s = self.plant.time_s
         msg.tick = self.plant.steps
         t = self.test_sample

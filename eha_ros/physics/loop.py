@@ -99,9 +99,7 @@ class FluidBlock(Protocol):
 def fluid_kernels(fluid: FluidBlock | None, p: PlantParams) -> tuple:
     """``(p12_fn, flows_fn, data, loops)`` of :func:`run` for ``fluid`` at the parameters
     ``p``: its kernel in the place its ``kernel_output`` names (``None`` in the other), the
-    kernel's data and the block's own compiled forms of the loop, its optional attribute
-    ``loops`` (``(explicit, split)`` forms of :func:`advance` with that kernel as a global,
-    disk-cacheable; ``None``: the forms that take the kernel as an argument);
+    kernel's data and the block's optional ``loops`` (its own compiled forms, :func:`run`);
     ``(None, None, (), None)`` for the high-fidelity block (``fluid`` ``None``)."""
     if fluid is None:
         return None, None, (), None
@@ -305,15 +303,8 @@ def advance(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, split):
     ``(status, steps done, rows recorded, i_cmd)``: status 0, or 1 + the index into
     ``_WATCHED`` of the first state that diverged.
 
-    Inlined into its compiled forms, explicit or split with ``split`` a constant of each.  The
-    high-fidelity forms (both kernels ``None``, below) are cached on disk, so a process loads
-    them instead of compiling them (tens of seconds: the blocks are inlined for speed).  A
-    kernel passed in an argument is typed by its object, not its code, so a cache entry keyed
-    by it never matches in another process and, once that object is gone, breaks the saving
-    of the cache index for every later entry: such a kernel's forms (:func:`run`'s fallback)
-    are compiled once per process, uncached.  A surrogate that names its kernel as a global
-    of a form of its own (``loops``, :func:`fluid_kernels`; the shipped kinds', in
-    :data:`eha_ros.surrogates.base.Forms`) is cached as the high-fidelity block is.
+    Inlined into its compiled forms, explicit or split with ``split`` a constant of each
+    (:func:`run`).
     """
     # everything out of the tuples once, before the loop (an array taken from a tuple is
     # reference-counted at each access)
@@ -407,10 +398,13 @@ def _run_split_kernel(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data):
 
 
 def run(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, loops=None):
-    """The plant's kernel (:func:`advance`), explicit or split as ``clock.substeps`` says: the
-    high-fidelity block's compiled forms come from the disk cache; a surrogate's from its own
-    ``loops`` (``(explicit, split)``, each ``form(s, i_cmd, p, clock, loop, data)``, see
-    :func:`fluid_kernels`), or else are compiled once per process."""
+    """The plant's kernel (:func:`advance`), explicit or split as ``clock.substeps`` says, by
+    compiled forms cached on disk (a process loads them: compiling takes tens of seconds): the
+    high-fidelity block's (both kernels ``None``), or a surrogate's own ``loops``
+    (``(explicit, split)``, each ``form(s, i_cmd, p, clock, loop, data)``;
+    :data:`eha_ros.surrogates.base.Forms`).
+    Any other kernel is typed by its object, so an entry keyed by it would never match in
+    another process and breaks the saving of the cache index: its forms are not cached."""
     split = clock.substeps > 0
     if loops is not None:
         return loops[split](s, i_cmd, p, clock, loop, data)

@@ -39,9 +39,7 @@ def message_to_plain_data(msg) -> Any:
     if isinstance(msg, (list, tuple)) or type(msg).__name__ == 'array':
         return [v[0] if isinstance(v, bytes) and len(v) == 1 else message_to_plain_data(v)
                 for v in msg]
-    if isinstance(msg, np.generic):
-        return msg.item()
-    return msg
+    return msg.item() if isinstance(msg, np.generic) else msg
 
 
 def flatten(msg) -> Dict[str, Any]:

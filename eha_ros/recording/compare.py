@@ -123,12 +123,6 @@ def resampled_relative_error(t_ref: np.ndarray, x_ref: np.ndarray, t: np.ndarray
     return {'relative_error': num / den, 'samples': n}
 
 
-def _unique_labels(runs: List[Run]) -> List[Run]:
-    counts = Counter(r.label for r in runs)
-    return [r._replace(label=r.label if counts[r.label] == 1
-                       else f'{r.label} ({Path(r.path).name})') for r in runs]
-
-
 def compare_runs(runs: Sequence[Run], reference: int = 0, align: str = 'stamp') -> dict:
     """Relative errors of every run against ``runs[reference]``; a JSON-ready dict."""
     if align == 'start':
@@ -249,7 +243,10 @@ def main(argv: Optional[List[str]] = None) -> int:
                                '(use --force)')
         if out_dir.exists() and not out_dir.is_dir():
             raise CompareError(f'--out {out_dir} is not a folder')
-        runs = _unique_labels([load_run(f) for f in args.files])
+        runs = [load_run(f) for f in args.files]
+        counts = Counter(r.label for r in runs)  # a label two runs share: their files' names
+        runs = [r._replace(label=r.label if counts[r.label] == 1
+                           else f'{r.label} ({Path(r.path).name})') for r in runs]
         ref = _reference_index(runs, args.reference)
         result = compare_runs(runs, ref, args.align)
         if not args.no_plots:

@@ -95,14 +95,6 @@ def _publisher_qos(info: RecordingInfo, topic: str):
     return qos
 
 
-def _sleep_until(target: float, stop) -> None:
-    while not stop.requested:
-        left = target - time.monotonic()
-        if left <= 0:
-            return
-        time.sleep(min(left, 0.1))
-
-
 def main(argv: Optional[List[str]] = None) -> int:
     """Console script ``eha-replay``; returns the exit status."""
     parser = argparse.ArgumentParser(
@@ -175,7 +167,9 @@ def main(argv: Optional[List[str]] = None) -> int:
                     break
                 if first_log is None:
                     first_log = msg.log_time_ns
-                _sleep_until(start + (msg.log_time_ns - first_log) / 1e9 / args.rate, stop)
+                due = start + (msg.log_time_ns - first_log) / 1e9 / args.rate
+                while not stop.requested and (left := due - time.monotonic()) > 0:
+                    time.sleep(min(left, 0.1))
                 if synth_clock is not None and msg.log_time_ns != last_clock:
                     clock = Clock()
                     clock.clock.sec, clock.clock.nanosec = divmod(msg.log_time_ns,

@@ -41,13 +41,10 @@ def _vectorise(kernel, data, xs, q, lap, clr, out):
 
 
 #: A kernel's compiled forms, each with the kernel a global (not an argument) so that numba
-#: caches it on disk: the plant's loop explicit and split (``form(s, i_cmd, p, clock, loop,
-#: data)``, :func:`eha_ros.physics.loop.advance`) and the loop over points
+#: caches it on disk (:func:`eha_ros.physics.loop.run` says why): the plant's loop explicit
+#: and split (``form(s, i_cmd, p, clock, loop, data)``) and the loop over points
 #: (``points(data, xs, q, lap, clr, out)`` for P12, ``points(data, xs, p1, p2, lap_s, lap_r,
-#: out1, out2)`` for chamber flows).  A kernel passed as an argument types the compiled code
-#: by its object, so without these forms every process compiles the plant's loop again for
-#: each surrogate (about 20 s).  Numba checks the source file of a form only: a kernel changed
-#: without reinstalling the package (which renews every installed file) keeps its old code.
+#: out1, out2)`` for chamber flows).
 Forms = namedtuple('Forms', 'run run_split points')
 
 

@@ -88,9 +88,7 @@ def _report(argv) -> int:
 
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] == 'report':
-        return _report(argv[1:])
-    return _run(argv)
+    return _report(argv[1:]) if argv and argv[0] == 'report' else _run(argv)
 
 
 if __name__ == '__main__':

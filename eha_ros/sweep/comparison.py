@@ -46,12 +46,9 @@ def noise_free_spec(scenarios, wear_points: dict, models, large_dts=(), signals=
     spec = {'procedure': 'scenario', 'scenario': list(scenarios), 'models': ['hf'] + [
         m for m in models if m != 'hf'], 'noise': False, 'compare': 'yardstick',
             'cases': [wear_inputs(w, base) for w in wear_points.values()]}
-    if large_dts:
-        spec['large_dts'] = [float(d) for d in large_dts]
-    if split_dts:
-        spec['split_dts'] = [float(d) for d in split_dts]
-    if signals:
-        spec['signals'] = list(signals)
+    spec.update((k, v) for k, v in (('large_dts', [float(d) for d in large_dts]),
+                                    ('split_dts', [float(d) for d in split_dts]),
+                                    ('signals', list(signals))) if v)
     return spec
 
 
@@ -164,7 +161,7 @@ def run_comparison(folder, scenarios, wear_points: dict, models, noise_models=()
     if noise_models and seeds > 0:
         specs.append(('noise', parse_spec(noise_spec(scenarios, noise_models, seeds),
                                           source='in-loop comparison, noise on')))
-    sweeps, out = {}, {'noise_free': {}, 'noise': {}}
+    sweeps = {}
     workers = engine.pop('workers', None)
     engine.setdefault('warm', True)
     in_process = engine.get('in_process', False)
@@ -173,9 +170,7 @@ def run_comparison(folder, scenarios, wear_points: dict, models, noise_models=()
             d = folder / name
             sweeps[name] = run_sweep(spec, d, client=client,
                                      resume=d.is_dir() and any(d.iterdir()), **engine)
-    out['noise_free'] = noise_free_results(read_dataset(folder / 'noise_free'), wear_points,
-                                           keep_signals=bool(signals))
-    if len(specs) > 1:
-        out['noise'] = noise_results(read_dataset(folder / 'noise'), noise_models)
-    out['sweeps'] = sweeps
-    return out
+    return {'noise_free': noise_free_results(read_dataset(folder / 'noise_free'), wear_points,
+                                             keep_signals=bool(signals)),
+            'noise': noise_results(read_dataset(folder / 'noise'), noise_models)
+            if len(specs) > 1 else {}, 'sweeps': sweeps}

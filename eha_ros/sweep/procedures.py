@@ -77,9 +77,7 @@ class ScenarioProcedure(Procedure):
 
     def run_point(self, point) -> list:
         if self.spec.compare == 'yardstick':
-            if self.spec.noise:
-                return self._yardstick_noise(point)
-            return self._yardstick(point)
+            return self._yardstick_noise(point) if self.spec.noise else self._yardstick(point)
         sc = point.scenario
         t0 = time.perf_counter()
         rows = {}

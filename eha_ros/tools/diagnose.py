@@ -51,14 +51,6 @@ _OPTIONAL_FIELDS = {'valve_test_procedure': 0, 'supply_pressure_measured_pa': ma
                     'fluid_temperature_measured_k': math.nan}
 
 
-def _recorded_health(path) -> list:
-    """The recorded HealthStatus messages as flat dicts (sequence fields kept)."""
-    try:
-        return [flatten(m.message) for m in McapReader(path, topics=[TOPIC_HEALTH])]
-    except (OSError, RecordingError):
-        return []
-
-
 def _same(a, b) -> bool:
     """Bit-for-bit equality of two floats (NaN equals NaN)."""
     return np.float64(a).tobytes() == np.float64(b).tobytes()
@@ -178,7 +170,11 @@ def diagnose(path, params=None, method: str = 'auto', window_s: float = WINDOW_S
            'not_estimated': [n for n in ITEMS if n not in core.items],
            'reports': len(reports), 'scheduled_in_service': core.scheduled}
     if method == 'auto':
-        out.update(compare_live(_recorded_health(path), reports, snapshots))
+        try:  # the recorded HealthStatus messages as flat dicts (sequence fields kept)
+            live = [flatten(m.message) for m in McapReader(path, topics=[TOPIC_HEALTH])]
+        except (OSError, RecordingError):
+            live = []
+        out.update(compare_live(live, reports, snapshots))
     return out
 
 
@@ -210,7 +206,7 @@ def main(argv=None) -> int:
         print(f'eha-diagnose: error: {" ".join(str(exc).split())}', file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps(r, allow_nan=False, default=_json_default))
+        print(json.dumps(r, allow_nan=False, default=lambda x: x.item()))
     else:
         print(f'{r["file"]}: [{r["level"]}] {r["kind"]} ({r["method"]}): {r["message"]}')
         c = r['conditions']
@@ -228,12 +224,6 @@ def main(argv=None) -> int:
             print(f'  live /eha/health: {r["live_messages"]} messages, '
                   f'{"equal to" if r["live_agrees"] else "DIFFERENT from"} the replay')
     return 0
-
-
-def _json_default(x):
-    if isinstance(x, (np.floating, np.integer)):
-        return x.item()
-    raise TypeError(type(x).__name__)
 
 
 if __name__ == '__main__':

@@ -166,10 +166,7 @@ def node_defaults(descriptions: bool = False) -> dict:
     (each is built once in a private context, with no output written)."""
     import rclpy
 
-    from eha_ros.nodes.command_generator import CommandGenerator
-    from eha_ros.nodes.controller import Controller
-    from eha_ros.nodes.health_monitor import HealthMonitor
-    from eha_ros.nodes.servovalve_plant import ServovalvePlant
+    from eha_ros.harness.supervisor import NODE_CLASSES
     from eha_ros.nodes.foxglove_bridge import FoxgloveBridge
     from eha_ros.recording.recorder import declare_parameters
 
@@ -177,9 +174,7 @@ def node_defaults(descriptions: bool = False) -> dict:
         node = rclpy.create_node('recorder', **kwargs)
         declare_parameters(node)
         return node
-    classes = {'command_generator': CommandGenerator, 'controller': Controller,
-               'servovalve_plant': ServovalvePlant, 'health_monitor': HealthMonitor,
-               'recorder': recorder, 'foxglove_bridge': FoxgloveBridge}
+    classes = dict(NODE_CLASSES, recorder=recorder, foxglove_bridge=FoxgloveBridge)
     out = {}
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=0)

@@ -127,8 +127,12 @@ def build_database(name: str, params: PlantParams | None = None, progress: bool 
                           clr[cj][None, None, :], params=p, t_end_s=t_end_s, dt_s=dt_s)
         for m, (i, j) in enumerate(chunk):
             p12[:, :, i, j] = r['p12_pa'][:, :, m]
-        if progress:
-            _bar(name, min(k + per_call, n_maps), n_maps, time.perf_counter() - t0)
+        if progress:  # a bar of 30 characters and the time left
+            done, elapsed = min(k + per_call, n_maps), time.perf_counter() - t0
+            fill, eta = 30 * done // n_maps, elapsed / done * (n_maps - done)
+            sys.stderr.write(f'\r{name} [{"#" * fill}{"." * (30 - fill)}] {done}/{n_maps} maps '
+                             f'{elapsed:5.1f} s, eta {eta:5.1f} s')
+            sys.stderr.flush()
     if progress:
         sys.stderr.write('\n')
     meta = {
@@ -142,15 +146,6 @@ def build_database(name: str, params: PlantParams | None = None, progress: bool 
         'build_wall_s': round(time.perf_counter() - t0, 2),
     }
     return Database(xs, q, lap, clr, p12, meta)
-
-
-def _bar(name, done, total, elapsed):
-    width = 30
-    fill = int(width * done / total)
-    eta = elapsed / done * (total - done) if done else 0.0
-    sys.stderr.write(f'\r{name} [{"#" * fill}{"." * (width - fill)}] {done}/{total} maps '
-                     f'{elapsed:5.1f} s, eta {eta:5.1f} s')
-    sys.stderr.flush()
 
 
 _ARRAYS = ('xs_m', 'q_m3_s', 'overlap_m', 'clearance_m', 'p12_pa', 'meta')

@@ -233,12 +233,6 @@ def build_dlut(params: PlantParams | None = None, grid: dict | None = None):
 
 # --- dga ----------------------------------------------------------------------------------------
 
-def _hf_coefficients(p: PlantParams):
-    """The hf model's values of the closed form's genes (for the record, never a start)."""
-    vc = edge_constants(1.0, 0.0, 0.0, *fluid_constants(p))
-    return np.array([vc[1], 3.0, vc[2], vc[3]])
-
-
 #: Gene bounds: decades of the three coefficients around their textbook scales, and the
 #: clearance exponent of the laminar term (between the orifice's 1 and beyond the slit's 3).
 _LOG_LB = np.array([-2.0, 1.0, -2.0, -6.0])
@@ -318,6 +312,7 @@ def build_dga(params: PlantParams | None = None, settings: dict | None = None):
     coeff_grad = _genes_to_coefficients(lsq.x, scales)
     shipped = coeff_grad if st['polish'] else coeff
     data = (shipped,)
+    vc = edge_constants(1.0, 0.0, 0.0, *fluid_constants(p))  # the hf model's gene values
     meta = _meta('dga', p, {
         'form': 'q = 2 dp / (RL + sqrt(RL^2 + B + R4 |dp|)), RL = k_lam max(-s,0) / c^n_lam, '
                 'R4 = k_turb / h^2, B = k_rey / h^4, h^2 = c^2 + max(s,0)^2',
@@ -335,7 +330,7 @@ def build_dga(params: PlantParams | None = None, settings: dict | None = None):
                          'time_s': round(grad_s, 1),
                          'train': rms(coeff_grad, s, dp, c, ln_g),
                          'validation': rms(coeff_grad, sv, dv, cv, ln_gv)},
-        'hf_values': {'coefficients': _hf_coefficients(p).tolist(),
+        'hf_values': {'coefficients': [float(vc[1]), 3.0, float(vc[2]), float(vc[3])],
                       'note': 'the hf model is this form with these values (for the record: '
                               'the fit starts from the middle of the gene bounds)'},
     })

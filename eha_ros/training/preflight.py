@@ -117,11 +117,8 @@ def inner_service(bench=None) -> dict:
     """The service envelope less each sensor's calibration error and three noise
     deviations: true conditions in it are measured within the envelope."""
     b = bench or load_bench()
-    out = {}
-    for name, (lo, hi) in b.service.items():
-        m = b.sensors[name].bias + 3 * b.sensors[name].noise_std
-        out[name] = (lo + m, hi - m)
-    return out
+    return {name: (lo + m, hi - m) for name, (lo, hi) in b.service.items()
+            for m in (b.sensors[name].bias + 3 * b.sensors[name].noise_std,)}
 
 
 def draw_drift(rng: np.random.Generator, bench=None, params: PlantParams | None = None,

@@ -76,9 +76,9 @@ def curves_from_maps(db: Database, pairs):
             np.repeat(np.arange(len(pairs)), n_q))
 
 
-def _ranges():
-    return np.array([np.diff(WEAR_RANGES['radial_clearance_m'])[0],
-                     np.diff(WEAR_RANGES['overlap_m'])[0]])
+#: The spans of the wear ranges [m] (clearance, overlap): the errors are in % of them.
+_RANGES = np.array([np.diff(WEAR_RANGES['radial_clearance_m'])[0],
+                    np.diff(WEAR_RANGES['overlap_m'])[0]])
 
 
 def wear_errors(model: DiagnosticModel, curves, q, wear, map_index, *, noise_level=0.0,
@@ -88,11 +88,11 @@ def wear_errors(model: DiagnosticModel, curves, q, wear, map_index, *, noise_lev
     rng = np.random.default_rng(seed)
     x = add_noise(curves, noise_level, rng, noise) if noise_level else curves
     est = model.forward(x, q)
-    err = np.abs(est - wear) / _ranges() * 100.0
+    err = np.abs(est - wear) / _RANGES * 100.0
     maps = np.unique(map_index)
     est_map = np.stack([np.median(est[map_index == m], axis=0) for m in maps])
     true_map = np.stack([wear[map_index == m][0] for m in maps])
-    err_map = np.abs(est_map - true_map) / _ranges() * 100.0
+    err_map = np.abs(est_map - true_map) / _RANGES * 100.0
     out = {}
     for k, name in enumerate(('clearance', 'overlap')):
         for tag, e in (('curve', err[:, k]), ('map', err_map[:, k])):
