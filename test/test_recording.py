@@ -550,7 +550,7 @@ def test_recorder_refuses_a_bad_parameter_before_creating_its_file(ros_env, tmp_
     from rclpy.exceptions import ParameterException
     from rclpy.parameter import Parameter
 
-    from eha_ros.recording.recorder import Recorder
+    from eha_ros.nodes.recorder import Recorder
 
     output = tmp_path / 'run.mcap'
     context = rclpy.Context()
@@ -572,7 +572,7 @@ def test_recorder_refuses_snapshot_with_split_and_changes_while_running(ros_env,
     import rclpy
     from rclpy.parameter import Parameter
 
-    from eha_ros.recording.recorder import Recorder
+    from eha_ros.nodes.recorder import Recorder
 
     context = rclpy.Context()
     rclpy.init(context=context)

@@ -7,10 +7,12 @@ them.
 * :mod:`~eha_ros.recording.reader`: :class:`McapReader`, :func:`scan`, :func:`iter_decoded`;
 * :mod:`~eha_ros.recording.arrays`: :func:`load_topic_arrays`, :func:`message_to_plain_data`.
 
-The graph's topic names, types and QoS are in :mod:`eha_ros.graph`.
-* console scripts: ``recorder`` (node writing one MCAP file per run), ``eha-replay``
-  (republish a recording with its timing and ``/clock``), ``eha-echo`` (print a topic) and
-  ``eha-compare`` (relative errors and plots of runs against a reference).
+* console scripts: ``eha-replay`` (republish a recording with its timing and ``/clock``),
+  ``eha-echo`` (print a topic) and ``eha-compare`` (relative errors and plots of runs
+  against a reference).
+
+The graph's topic names, types and QoS are in :mod:`eha_ros.graph`; the ``recorder`` node,
+writing one MCAP file per run, is :mod:`eha_ros.nodes.recorder`.
 """
 
 from eha_ros.recording.arrays import load_topic_arrays

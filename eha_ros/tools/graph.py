@@ -168,7 +168,7 @@ def node_defaults(descriptions: bool = False) -> dict:
 
     from eha_ros.harness.supervisor import NODE_CLASSES
     from eha_ros.nodes.foxglove_bridge import FoxgloveBridge
-    from eha_ros.recording.recorder import declare_parameters
+    from eha_ros.nodes.recorder import declare_parameters
 
     def recorder(**kwargs):  # its declarations alone: a Recorder would create its file
         node = rclpy.create_node('recorder', **kwargs)

@@ -82,13 +82,14 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
 from eha_ros import graph
-from eha_ros.nodes.common import (apply_realtime_settings, declare, declare_realtime,
-                                  refuse_undeclared, take_waiting, validator)
-from eha_ros.nodes.handshake import Handshake
 from eha_ros.physics import ParameterError
 from eha_ros.recording.definitions import qos_profile_dict, SequenceGapCounter
 from eha_ros.recording.stop import StopRequest
 from eha_ros.recording.writer import McapWriter
+
+from .common import (apply_realtime_settings, declare, declare_realtime, refuse_undeclared,
+                     take_waiting, validator)
+from .handshake import Handshake
 
 __all__ = ['Recorder', 'RecorderError', 'main']
 
