@@ -130,6 +130,8 @@ SNAPSHOT_FIELDS = ('jack_position_m', 'jack_position_measured_m', 'jack_velocity
 #: Name of a node's timing status on ``/diagnostics``: ``'<node>: timing'`` (the health
 #: monitor's statuses have other names).
 TIMING_SUFFIX = ': timing'
+#: The same for the plant's command watchdog (``'<node>: command watchdog'``).
+WATCHDOG_SUFFIX = ': command watchdog'
 #: The key of a node's last timing report, sent when its run ends (value 1: every timing
 #: value is a number).
 RUN_ENDED = 'Run ended'

@@ -16,7 +16,7 @@ from rclpy.node import Node
 
 from eha_ros.graph import (QOS_DEPTH, RUN_ENDED, SNAPSHOT_FIELDS, TIMING_SUFFIX, TOPIC_COMMAND,
                            TOPIC_DIAGNOSTICS, TOPIC_EVENTS, TOPIC_HEALTH, TOPIC_SERVOVALVE,
-                           TOPIC_STATE, graph_qos, topic_qos)
+                           TOPIC_STATE, WATCHDOG_SUFFIX, graph_qos, topic_qos)
 from eha_ros.msg import (ActuatorCommand, ActuatorState, GraphEvent, HealthStatus,
                          ServovalveCommand)
 from eha_ros.nodes.common import stamp_to_ns, take_waiting
@@ -156,7 +156,7 @@ class Collector:
         scheduled = {t_s for t_s, node, _ in config.all_events()
                      if node == 'servovalve_plant' and round(t_s * 1e9) + period_ns <= last}
         seen = [e for e in self.events if e['node'] == 'servovalve_plant']
-        status = self.diagnostics.get('servovalve_plant: command watchdog', {}).get('values', {})
+        status = self.diagnostics.get('servovalve_plant' + WATCHDOG_SUFFIX, {}).get('values', {})
         trips, shown = self._watchdog_trips, int(status.get('Trips since startup', 0))
         in_force = self.state_cols['safe_action'][-1] != 0
         behind = trips and (shown < trips or shown == trips and in_force

@@ -80,7 +80,7 @@ from rclpy.clock import Clock as RosClock, ClockType
 from rclpy.node import Node
 from rosgraph_msgs.msg import Clock
 
-from eha_ros.graph import MODELS, SNAPSHOT_FIELDS
+from eha_ros.graph import MODELS, SNAPSHOT_FIELDS, WATCHDOG_SUFFIX
 from eha_ros.msg import ActuatorState, ServovalveCommand
 from eha_ros.physics import (ParameterError, Plant, SimulationDiverged, get_scenario,
                              load_params)
@@ -351,7 +351,7 @@ class ServovalvePlant(Node):
                   'Stale ticks since startup': wd.stale_ticks,
                   'Trips since startup': wd.trips,
                   'Began at tick': began[0] if began else -1}
-        publish_status(self, self.timing.pub, self.get_name() + ': command watchdog', level,
+        publish_status(self, self.timing.pub, self.get_name() + WATCHDOG_SUFFIX, level,
                        message, values)
 
     def _apply_due_events(self) -> None:

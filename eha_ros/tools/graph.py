@@ -197,11 +197,6 @@ def node_defaults(descriptions: bool = False) -> dict:
     return out
 
 
-def _yaml_scalar(value) -> str:
-    text = yaml.safe_dump(value, default_flow_style=True, width=1 << 16)
-    return text.strip().removesuffix('...').strip()  # a scalar document ends in '...'
-
-
 def defaults_yaml() -> str:
     """``config/graph.yaml``: every node's parameters with their defaults and descriptions."""
     lines = [
@@ -220,7 +215,9 @@ def defaults_yaml() -> str:
         lines += ['', f'/{node}:', '  ros__parameters:']
         for name, (value, desc) in params.items():
             lines += [f'    # {line}' for line in textwrap.wrap(' '.join(desc.split()), 93)]
-            lines.append(f'    {name}: {_yaml_scalar(value)}')
+            # the value as a YAML flow scalar (whose document ends in '...')
+            text = yaml.safe_dump(value, default_flow_style=True, width=1 << 16)
+            lines.append(f'    {name}: ' + text.strip().removesuffix('...').strip())
     return '\n'.join(lines) + '\n'
 
 
