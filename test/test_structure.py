@@ -102,6 +102,33 @@ def test_no_import_circle_in_the_package():
     assert _circles(graph) == []
 
 
+def _rooms(graph: dict) -> dict:
+    """The imports between the package's rooms: each sub-package (``eha_ros.nodes``) and each
+    top-level module (``eha_ros.graph``) is one room."""
+    def room(m):
+        return '.'.join(m.split('.')[:2])
+    out = {}
+    for name, deps in graph.items():
+        out.setdefault(room(name), set()).update(room(d) for d in deps
+                                                 if room(d) != room(name))
+    return out
+
+
+def test_the_room_graph_joins_modules_into_their_packages():
+    assert _rooms({'eha_ros.a.x': {'eha_ros.b.y', 'eha_ros.a.z'}, 'eha_ros.a.z': set(),
+                   'eha_ros.b.y': {'eha_ros.c'}, 'eha_ros.c': set()}) == {
+        'eha_ros.a': {'eha_ros.b'}, 'eha_ros.b': {'eha_ros.c'}, 'eha_ros.c': set()}
+
+
+def test_no_circle_between_the_packages_rooms():
+    """Two sub-packages that import each other (through different modules: no module circle)
+    stand on no floor of their own, as ``recording/`` and ``nodes/`` did while the recorder node
+    lived in ``recording/`` and the Foxglove bridge read ``recording.definitions``."""
+    rooms = _rooms(_graph())
+    assert {'eha_ros.nodes', 'eha_ros.recording'} <= rooms['eha_ros.harness']
+    assert _circles(rooms) == []
+
+
 def test_surrogate_base_is_a_leaf_of_its_package():
     assert not {m for m in _graph()['eha_ros.surrogates.base']
                 if m.startswith('eha_ros.surrogates')}
