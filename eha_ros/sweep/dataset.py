@@ -59,9 +59,10 @@ def write_batch(folder: Path, rows: list, sch, first_index: int) -> Path:
         if extra:  # a metric the schema lacks would be dropped silently: refuse
             raise SweepError(f'row of case {r.get("case_id")} has columns outside the '
                              f'schema: {", ".join(sorted(extra))}')
+    values = {f.name: [r.get(f.name) for r in rows] for f in sch}
     # signals (list columns): numpy arrays, one buffer per column
-    columns = [_list_array(v) if pa.types.is_list(f.type) else pa.array(v, type=f.type)
-               for f, v in ((f, [r.get(f.name) for r in rows]) for f in sch)]
+    columns = [_list_array(values[f.name]) if pa.types.is_list(f.type)
+               else pa.array(values[f.name], type=f.type) for f in sch]
     table = pa.Table.from_arrays(columns, schema=sch)
     digest = hashlib.sha256('.'.join(r['case_id'] for r in rows).encode()).hexdigest()[:8]
     path = Path(folder) / f'part-{first_index:07d}-{digest}.parquet'

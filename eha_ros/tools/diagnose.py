@@ -206,7 +206,7 @@ def main(argv=None) -> int:
         print(f'eha-diagnose: error: {" ".join(str(exc).split())}', file=sys.stderr)
         return 2
     if args.json:
-        print(json.dumps(r, allow_nan=False, default=lambda x: x.item()))
+        print(json.dumps(r, allow_nan=False, default=np.generic.item))  # numpy scalars only
     else:
         print(f'{r["file"]}: [{r["level"]}] {r["kind"]} ({r["method"]}): {r["message"]}')
         c = r['conditions']
