@@ -32,6 +32,17 @@ Integrators (``split_dts``): hf and the dynamic surrogates also by the ``split``
 against the same hf at 1 us (explicit) with the same bounds; :func:`largest_steps` gives the
 largest step of each (model, integrator).
 
+Converged reference (``converged_dt``): hf explicit at a far smaller step (``bench/inloop.py``:
+10 ns), the plant's own solution with the step's error gone.  hf at 1 us is itself a
+first-order solution: where the loop is chaotic (a stuck jack within nanometres of half a
+sensor quantum, a breakaway that comes a tick sooner or later) its step error alone can exceed
+the bounds, and a more accurate integrator is then judged wrong for being closer to the
+solution.  So every run is also compared with the converged hf, under the same bounds
+(``models[...]['converged']``; hf at 1 us itself under ``converged['hf']``), and the converged
+run is checked against hf at twice its step (``converged['check']``; ``settled`` where that
+moves it by at most :data:`SETTLED_FRACTION` of each bound, so that the comparison does not
+rest on an unconverged reference).  :func:`converged_summary` counts the cases.
+
 Cost: wall seconds per simulated second of every run against hf's.
 """
 
@@ -79,6 +90,9 @@ CD_STEPS = (2e-4, 5e-4, 1e-3)
 #: Jack displacement per controller tick [m] below which the jack counts as stuck (1 nm per
 #: ms = 1 um/s; the sensor quantum is 1 um).
 STUCK_M = 1e-9
+#: The converged reference is ``settled`` in a case where hf at twice its step is within this
+#: fraction of each bound of it.
+SETTLED_FRACTION = 0.1
 
 
 def features(r) -> dict:
@@ -146,11 +160,18 @@ def model_result(jack, p12, meets, f, f_ref, spread, cost) -> dict:
             'cost_s_per_s': cost}
 
 
-def noise_free(p, scenario, surrogates, large_dts=(), keep_runs=False, split_dts=()):
+def _against(r, ref, bound) -> dict:
+    e = _errors(r, ref)
+    return {**e, 'meets': bool(e['jack'] <= bound['jack'] and e['p12'] <= bound['p12'])}
+
+
+def noise_free(p, scenario, surrogates, large_dts=(), keep_runs=False, split_dts=(),
+               converged_dt=None):
     """One case: hf, the yardstick runs and every surrogate (``{name: surrogate}``), at the
     parameters ``p`` (noise should be off); hf and the dynamic surrogates also at each step of
     ``large_dts`` [s] (keys ``'<model>@dt=<step>'``) and by the split integrator at each step
-    of ``split_dts`` (keys ``'<model>@split@dt=<step>'``).  With ``keep_runs`` the
+    of ``split_dts`` (keys ``'<model>@split@dt=<step>'``); with ``converged_dt`` [s] every run
+    also against hf explicit at that step (module docstring).  With ``keep_runs`` the
     :class:`SimResult` objects are returned under ``'runs'`` (for plots)."""
     ref = run(p, scenario)
     cd = p.discharge_coefficient
@@ -173,6 +194,14 @@ def noise_free(p, scenario, surrogates, large_dts=(), keep_runs=False, split_dts
            'hf_features': f_ref, 'feature_spread': spread,
            'hf_cost_s_per_s': _cost(ref), 'models': {}}
     kept = {'hf': ref, **pert}
+    conv = None
+    if converged_dt is not None:
+        conv = run(p, scenario, dt=float(converged_dt))
+        e = _errors(run(p, scenario, dt=2.0 * float(converged_dt)), conv)
+        out['converged'] = {'dt_s': float(converged_dt), 'hf': _against(ref, conv, out['bound']),
+                            'check': e, 'settled': bool(
+                                e['jack'] <= SETTLED_FRACTION * out['bound']['jack']
+                                and e['p12'] <= SETTLED_FRACTION * out['bound']['p12'])}
     for name, s in [('hf', None)] + list(surrogates.items()):
         runs = {} if name == 'hf' else {name: (None, EXPLICIT)}
         if name == 'hf' or name in DYNAMIC_MODELS:
@@ -189,6 +218,8 @@ def noise_free(p, scenario, surrogates, large_dts=(), keep_runs=False, split_dts
             meets = bool(e['jack'] <= out['bound']['jack'] and e['p12'] <= out['bound']['p12'])
             out['models'][key] = model_result(e['jack'], e['p12'], meets, features(r), f_ref,
                                               spread, _cost(r))
+            if conv is not None:
+                out['models'][key]['converged'] = _against(r, conv, out['bound'])
     if keep_runs:
         out['runs'] = kept
     return out
@@ -254,6 +285,37 @@ def largest_steps(summary) -> dict:
                      'largest_step_s': best,
                      'median_cost_vs_hf_at_it': (None if best is None
                                                  else rows[best]['median_cost_vs_hf'])}
+    return out
+
+
+def converged_summary(result) -> dict | None:
+    """Per model (hf at 1 us as ``'hf'``), the noise-free cases against the converged
+    reference under the same bounds, in the rows :func:`largest_steps` reads: cases,
+    ``cases_meeting_bounds``, ``cases_failing``, ``median_cost_vs_hf``; with
+    ``cases_unsettled``, the cases whose reference moved by more than
+    :data:`SETTLED_FRACTION` of a bound at twice its step (each model's count includes
+    them: a verdict there rests on an unconverged reference).  ``None`` without a converged
+    reference."""
+    cases = {n: c for n, c in result['noise_free'].items() if 'converged' in c}
+    if not cases:
+        return None
+    unsettled = sorted(n for n, c in cases.items() if not c['converged']['settled'])
+    rows = {'hf': [(n, c['converged']['hf'], 1.0) for n, c in cases.items()]}
+    for n, c in cases.items():
+        for m, r in c['models'].items():
+            rows.setdefault(m, []).append(
+                (n, r.get('converged'), r['cost_s_per_s'] / c['hf_cost_s_per_s']
+                 if 'cost_s_per_s' in r else None))
+    out = {}
+    for m, got in rows.items():
+        failed = [n for n, r, _ in got if r is None or not r['meets']]
+        costs = [k for _, _, k in got if k is not None]
+        out[m] = {'cases': len(got), 'cases_meeting_bounds': len(got) - len(failed),
+                  'cases_failing': failed, 'cases_unsettled': unsettled,
+                  **{f'worst_{q}_over_bound': max(
+                      (r[q] / cases[n]['bound'][q] for n, r, _ in got if r is not None),
+                      default=None) for q in ('jack', 'p12')},
+                  'median_cost_vs_hf': float(np.median(costs)) if costs else None}
     return out
 
 

@@ -9,7 +9,9 @@ import pytest
 from eha_ros.physics import default_params
 from eha_ros.physics.params import replace
 from eha_ros.surrogates.registry import load_surrogate
-from eha_ros.evaluation import DT_S, WEAR_POINTS, largest_steps, noise_free, with_noise
+from eha_ros.evaluation import (DT_S, SETTLED_FRACTION, WEAR_POINTS, converged_summary,
+                                largest_steps, noise_free, run, with_noise)
+from eha_ros.surrogates.base import relative_error
 
 
 def _row(meeting, cases=3, cost=1.0):
@@ -81,3 +83,72 @@ def test_dynamic_surrogates_meet_the_bounds_on_widened_cases(scenario, wear):
     for m in models:
         got = case['models'][m]
         assert got['meets'], (m, got['jack'], got['p12'], case['bound'])
+
+
+def test_the_converged_reference_judges_every_run_and_checks_itself(dga):
+    """With ``converged_dt`` every run (hf at 1 us too) is compared with hf at that step under
+    the case's bounds, and the reference with hf at twice its step; the summary counts the
+    cases in the rows the step ladder reads."""
+    p = replace(default_params(), noise_std_a=0.0)
+    r = noise_free(p, 'step_0p01', {'dga': dga}, large_dts=(5e-6,), split_dts=(1e-5,),
+                   converged_dt=2.5e-7, keep_runs=True)
+    conv = run(p, 'step_0p01', dt=2.5e-7)
+    check = run(p, 'step_0p01', dt=5e-7)
+    b = r['bound']
+    c = r['converged']
+    assert c['dt_s'] == 2.5e-7
+    assert c['check']['jack'] == relative_error(check['jack_position_m'], conv['jack_position_m'])
+    assert c['settled'] == (c['check']['jack'] <= SETTLED_FRACTION * b['jack']
+                            and c['check']['p12'] <= SETTLED_FRACTION * b['p12'])
+    for key, res in [('hf', c['hf'])] + [(k, m['converged']) for k, m in r['models'].items()]:
+        run_ = r['runs'][key]
+        assert res['jack'] == relative_error(run_['jack_position_m'], conv['jack_position_m'])
+        assert res['p12'] == relative_error(run_['p12_pa'], conv['p12_pa'])
+        assert res['meets'] == (res['jack'] <= b['jack'] and res['p12'] <= b['p12'])
+    assert 0 < c['hf']['jack'] < b['jack']  # another step, another run; within the bounds here
+    s = converged_summary({'noise_free': {'step_0p01/nominal': r}})
+    assert set(s) == {'hf', 'hf@dt=5e-06', 'hf@split@dt=1e-05', 'dga', 'dga@dt=5e-06',
+                      'dga@split@dt=1e-05'}
+    assert s['hf']['median_cost_vs_hf'] == 1.0
+    for key, row in s.items():
+        res = c['hf'] if key == 'hf' else r['models'][key]['converged']
+        assert row['cases'] == 1 and row['cases_meeting_bounds'] == int(res['meets'])
+    assert converged_summary({'noise_free': {'x': {k: v for k, v in r.items()
+                                                   if k != 'converged'}}}) is None
+
+
+def test_the_converged_summary_lists_failures_and_unsettled_references():
+    def case(settled, hf_meets, m_meets):
+        res = {'jack': 0.5, 'p12': 0.5}
+        return {'bound': {'jack': 1.0, 'p12': 1.0}, 'hf_cost_s_per_s': 2.0,
+                'converged': {'settled': settled, 'hf': {**res, 'meets': hf_meets}},
+                'models': {'m@split@dt=1e-05': {'cost_s_per_s': 0.5,
+                                                'converged': {**res, 'meets': m_meets}},
+                           'm@split@dt=2e-05': {'error': 'SimulationDiverged: boom'}}}
+    s = converged_summary({'noise_free': {'a': case(True, False, True),
+                                          'b': case(False, True, False)}})
+    assert s['hf']['cases_failing'] == ['a'] and s['hf']['cases_unsettled'] == ['b']
+    assert s['m@split@dt=1e-05']['cases_failing'] == ['b']
+    assert s['m@split@dt=1e-05']['median_cost_vs_hf'] == 0.25
+    # a run that failed is a failed case, never a missing one
+    assert s['m@split@dt=2e-05']['cases_failing'] == ['a', 'b']
+    assert s['m@split@dt=2e-05']['cases'] == 2
+    steps = largest_steps(s)
+    assert steps['m@split']['largest_step_s'] is None
+    assert steps['hf']['largest_step_s'] is None  # hf at 1 us itself misses case a
+
+
+def test_the_sweep_gives_the_converged_comparison_the_evaluation_gives(tmp_path):
+    """Through the sweep (``converged_dt`` in the spec, one row per case, read back): the same
+    errors, verdicts and check as :func:`noise_free` computes in one process."""
+    from eha_ros.sweep.comparison import run_comparison
+    p = replace(default_params(), noise_std_a=0.0)
+    direct = noise_free(p, 'step_0p01', {}, split_dts=(1e-5,), converged_dt=2.5e-7)
+    done = run_comparison(tmp_path / 'cmp', ['step_0p01'], {'nominal': None}, ['dga'],
+                          split_dts=(1e-5,), converged_dt=2.5e-7, in_process=True,
+                          progress=False)
+    swept = done['noise_free']['step_0p01/nominal']
+    assert swept['converged'] == {k: direct['converged'][k] for k in ('hf', 'settled', 'check')}
+    got = swept['models']['hf@split@dt=1e-05']['converged']
+    assert got == direct['models']['hf@split@dt=1e-05']['converged']
+    assert swept['models']['dga']['converged']['jack'] > 0

@@ -7,6 +7,7 @@ reproduce, timing and placement columns (``wall_*``, ``worker``) aside.
 """
 
 import json
+import math
 import os
 import signal
 import subprocess
@@ -18,6 +19,7 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 import yaml
+from hypothesis import given, settings, strategies as st
 
 from eha_ros.sweep import SpecError, parse_spec, read_dataset, run_sweep
 from eha_ros.sweep.dataset import TIMING_COLUMNS
@@ -85,6 +87,26 @@ def test_spec_refusals(change, words):
         parse_spec(raw)
     msg = str(e.value)
     assert words in msg and '\n' not in msg
+
+
+@settings(max_examples=60, deadline=None)
+@given(dt=st.one_of(st.floats(allow_nan=True, allow_infinity=True),
+                    st.integers(1, 1000).map(lambda n: n * 1e-9),
+                    st.floats(1e-9, 2e-6)))
+def test_converged_dt_is_a_whole_number_of_ns_below_the_step_or_refused(dt):
+    """``converged_dt`` with the yardstick: any number is taken as it is or refused in one
+    line naming the key; it is taken exactly where it is positive, below the comparison's
+    1 us and a whole number of nanoseconds (so that the check at twice it is one too)."""
+    raw = dict(SPEC, compare='yardstick', converged_dt=dt)
+    whole = math.isfinite(dt) and abs(round(dt * 1e9) - dt * 1e9) <= 1e-6 * abs(dt * 1e9)
+    if 0 < dt < 1e-6 and whole:
+        assert parse_spec(raw).converged_dt == dt
+    else:
+        with pytest.raises(SpecError) as e:
+            parse_spec(raw)
+        assert 'converged_dt' in str(e.value) and '\n' not in str(e.value)
+    with pytest.raises(SpecError, match='converged_dt needs compare: yardstick'):
+        parse_spec(dict(SPEC, converged_dt=2.5e-8))
 
 
 @pytest.mark.parametrize('procedure', ['scenario', 'preflight_check'])

@@ -40,7 +40,7 @@ def wear_inputs(wear, base) -> dict:
 
 
 def noise_free_spec(scenarios, wear_points: dict, models, large_dts=(), signals=(),
-                    split_dts=()) -> dict:
+                    split_dts=(), converged_dt=None) -> dict:
     from eha_ros.physics import default_params
     base = default_params()
     spec = {'procedure': 'scenario', 'scenario': list(scenarios), 'models': ['hf'] + [
@@ -49,6 +49,8 @@ def noise_free_spec(scenarios, wear_points: dict, models, large_dts=(), signals=
     spec.update((k, v) for k, v in (('large_dts', [float(d) for d in large_dts]),
                                     ('split_dts', [float(d) for d in split_dts]),
                                     ('signals', list(signals))) if v)
+    if converged_dt is not None:
+        spec['converged_dt'] = float(converged_dt)
     return spec
 
 
@@ -90,6 +92,10 @@ def noise_free_results(table, wear_points: dict, keep_signals: bool = False) -> 
                'bound': {'jack': hf['bound_jack'], 'p12': hf['bound_p12']},
                'hf_features': f_ref, 'feature_spread': spread,
                'hf_cost_s_per_s': hf['wall_cost_s_per_s'], 'models': {}}
+        if hf.get('converged_settled') is not None:
+            res['converged'] = {
+                'hf': _against(hf), 'settled': hf['converged_settled'],
+                'check': {'jack': hf['converged_check_jack'], 'p12': hf['converged_check_p12']}}
         if keep_signals:
             res['signals'] = {'hf': _signals(hf)}
         for r in rows:
@@ -103,10 +109,18 @@ def noise_free_results(table, wear_points: dict, keep_signals: bool = False) -> 
             res['models'][name] = model_result(
                 r['jack_rel_error'], r['p12_rel_error'], r['meets_bounds'],
                 {k: r[k] for k in feats}, f_ref, spread, r['wall_cost_s_per_s'])
+            if 'converged' in res:
+                res['models'][name]['converged'] = _against(r)
             if keep_signals and '@' not in name:
                 res['signals'][name] = _signals(r)
         out[key] = res
     return out
+
+
+def _against(row) -> dict:
+    """A row's errors against the converged hf, as :func:`evaluation.noise_free` gives them."""
+    return {'jack': row['converged_jack'], 'p12': row['converged_p12'],
+            'meets': row['meets_bounds_converged']}
 
 
 def _signals(row) -> dict:
@@ -147,7 +161,8 @@ def noise_results(table, models) -> dict:
 
 
 def run_comparison(folder, scenarios, wear_points: dict, models, noise_models=(),
-                   seeds: int = 0, large_dts=(), signals=(), split_dts=(), **engine) -> dict:
+                   seeds: int = 0, large_dts=(), signals=(), split_dts=(), converged_dt=None,
+                   **engine) -> dict:
     """Run both sweeps into ``folder/noise_free`` and ``folder/noise`` (resumed where they
     hold results) and return ``{'noise_free': ..., 'noise': ..., 'sweeps': summaries}``.
     ``engine``: :func:`.engine.run_sweep`'s ``workers`` (one LocalCluster for both sweeps),
@@ -155,7 +170,7 @@ def run_comparison(folder, scenarios, wear_points: dict, models, noise_models=()
     from . import parse_spec, read_dataset, run_sweep
     folder = Path(folder)
     nf = parse_spec(noise_free_spec(scenarios, wear_points, models, large_dts, signals,
-                                    split_dts),
+                                    split_dts, converged_dt),
                     source='in-loop comparison, noise off')
     specs = [('noise_free', nf)]
     if noise_models and seeds > 0:

@@ -60,6 +60,11 @@ class ScenarioProcedure(Procedure):
             out += tuple((f'spread_{f}', 'float') for f, _ in FEATURES)
             out += (('seed_spread_jack', 'float'), ('seed_spread_p12', 'float'),
                     ('cd_plus_0p1pct_jack', 'float'), ('cd_plus_0p1pct_p12', 'float'))
+            # against the converged hf (spec converged_dt; empty without); the check (hf at
+            # twice its step against it) and whether it settled, on hf's row
+            out += (('converged_jack', 'float'), ('converged_p12', 'float'),
+                    ('meets_bounds_converged', 'bool'), ('converged_check_jack', 'float'),
+                    ('converged_check_p12', 'float'), ('converged_settled', 'bool'))
         return out
 
     def columns(self) -> tuple:
@@ -137,7 +142,8 @@ class ScenarioProcedure(Procedure):
             p = point.params(self.spec)
             sur = {m: self.model(m) for m in self.spec.models if m != 'hf'}
             out = noise_free(p, point.scenario, sur, self.spec.large_dts,
-                             keep_runs=bool(self.spec.signals), split_dts=self.spec.split_dts)
+                             keep_runs=bool(self.spec.signals), split_dts=self.spec.split_dts,
+                             converged_dt=self.spec.converged_dt)
         except Exception as exc:
             return [self._row(c, {}, *status_of(exc)) for c in point.cases]
         wall = time.perf_counter() - t0
@@ -145,12 +151,21 @@ class ScenarioProcedure(Procedure):
                   'yardstick_p12': out['yardstick']['p12'],
                   'bound_jack': out['bound']['jack'], 'bound_p12': out['bound']['p12'],
                   **{f'spread_{f}': v for f, v in out['feature_spread'].items()}}
+        conv = out.get('converged')
+
+        def against(c):
+            return {} if c is None else {'converged_jack': c['jack'], 'converged_p12': c['p12'],
+                                         'meets_bounds_converged': c['meets']}
         duration = float(get_scenario(point.scenario).duration_s)
         runs = out.get('runs', {})
         rows = []
         for c in point.cases:
             if c.model == 'hf' and c.dt_s == self.spec.dt_s:
-                row = self._row(c, {**out['hf_features'], **common}, 'ok', None,
+                row = self._row(c, {**out['hf_features'], **common, **against(
+                    conv and conv['hf']), **({} if conv is None else {
+                        'converged_check_jack': conv['check']['jack'],
+                        'converged_check_p12': conv['check']['p12'],
+                        'converged_settled': conv['settled']})}, 'ok', None,
                                 self._signals(runs['hf'].data) if runs else None)
                 row['wall_cost_s_per_s'] = out['hf_cost_s_per_s']
                 if runs:
@@ -166,7 +181,8 @@ class ScenarioProcedure(Procedure):
                 else:
                     row = self._row(c, {**r['features'], 'jack_rel_error': r['jack'],
                                         'p12_rel_error': r['p12'], **common,
-                                        'meets_bounds': r['meets']}, 'ok', None,
+                                        'meets_bounds': r['meets'],
+                                        **against(r.get('converged'))}, 'ok', None,
                                     self._signals(runs[key].data) if runs else None)
                     row['wall_cost_s_per_s'] = r['cost_s_per_s']
             if row.get('wall_cost_s_per_s') is not None:

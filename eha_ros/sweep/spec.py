@@ -16,6 +16,8 @@ The YAML form (README, "Sweeps")::
     compare: yardstick             # scenario: hf's yardstick per case (evaluation.noise_free)
     large_dts: [2.0e-6]            # with the yardstick: hf and dynamic models at these steps
     split_dts: [1.0e-5]            # with the yardstick: the same by the split integrator
+    converged_dt: 1.0e-8           # with the yardstick: every case also against hf at this
+                                   # step (a converged reference, evaluation.noise_free)
     dt_s: 1.0e-6                   # plant step [s]
     integrator: explicit           # scenario without compare, preflight_check: the plant's
                                    # integrator (explicit | split)
@@ -61,7 +63,8 @@ MAX_CASES = 100_000
 #: Keys a spec may have.
 KEYS = ('procedure', 'scenario', 'models', 'seeds', 'noise', 'parameters', 'random', 'tie',
         'cases', 'compare', 'large_dts', 'dt_s', 'signals', 'signal_dt_s', 'metrics',
-        'flows_m3_s', 'valve_test_procedure', 'pressure_noise', 'split_dts', 'integrator')
+        'flows_m3_s', 'valve_test_procedure', 'pressure_noise', 'split_dts', 'integrator',
+        'converged_dt')
 
 
 @dataclasses.dataclass(frozen=True)
@@ -159,6 +162,8 @@ class Spec:
     #: integrator (models ``<name>@split``); without it: the integrator of every case
     split_dts: tuple = ()
     integrator: str = EXPLICIT
+    #: with the yardstick: the step [s] of the converged hf every case is also compared with
+    converged_dt: float | None = None
     #: The procedure (:data:`eha_ros.sweep.procedures.PROCEDURES`), built once by
     #: :func:`parse_spec`: it checks the spec, declares the columns and runs the points.
     proc: object = dataclasses.field(default=None, repr=False, compare=False)
@@ -428,6 +433,20 @@ def _steps(raw: dict, procedure: str, kind, where: str) -> tuple:
     return compare, large_dts, split_dts, integrator, dt_s
 
 
+def _converged_dt(raw: dict, compare, where: str):
+    """The converged reference's step [s] (``None``: none): below the comparison's step and
+    a whole number of nanoseconds, so that twice it is too."""
+    if raw.get('converged_dt') is None:
+        return None
+    dt = _float('converged_dt', raw['converged_dt'], where)
+    if compare != 'yardstick':
+        raise SpecError(f'{where}: converged_dt needs compare: yardstick')
+    if not (0 < dt < DT_S) or abs(round(dt * 1e9) - dt * 1e9) > 1e-6 * dt * 1e9:
+        raise SpecError(f'{where}: converged_dt = {dt:g} s must be a whole number of '
+                        f'nanoseconds below the comparison\'s step {DT_S:g} s')
+    return dt
+
+
 def _outputs(raw: dict, procedure: str, kind, compare, where: str) -> tuple:
     """``(signals, signal_dt_s, metrics)``: what the procedure (``kind``) keeps of each
     case."""
@@ -506,6 +525,7 @@ def parse_spec(raw, source: str = 'spec', max_cases: int = MAX_CASES, check: boo
                 tuple(cases), compare, large_dts, dt_s, tuple(signals), signal_dt_s, metrics,
                 flows, dict(raw), valve_test_procedure=vtp, pressure_noise=float(pnoise),
                 split_dts=split_dts, integrator=integrator, source=where,
+                converged_dt=_converged_dt(raw, compare, where),
                 base=dict(params_to_dict(default_params()) if base is None else base))
     spec.proc = kind(spec)
     if check:
