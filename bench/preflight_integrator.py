@@ -13,7 +13,10 @@ runs it (:func:`eha_ros.physics.maintenance.run_preflight`, one tick at a time) 
 Per variant and fault: the shift of the network's estimate from the reference's, in units of
 the reference's stated deviation (max and RMS over the cases), the largest change of the OOD
 score, the cases whose refusal flips, and the wall time of the checks against the reference's
-(``speedup``, one process, after a warm-up that compiles).  The load averages come with it.
+(``speedup``, one process, after a warm-up that compiles).  The reference also runs as the
+plant node runs it, one kernel call per tick (``tick_by_tick``): its wall time against the one
+call of :func:`run_preflight` (``speedup_of_one_call``) and whether every signal is the same
+bit for bit.  The load averages come with it.
 
     python bench/preflight_integrator.py [--n 16] [--split-dts 1e-5,2e-5,2.5e-5]
 """
@@ -27,8 +30,10 @@ import numpy as np
 
 from eha_ros.health.preflight import CONDITION_READINGS, FAULT_NAMES, load_faults
 from eha_ros.physics.bench import mean_conditions, measure_conditions
-from eha_ros.physics.maintenance import run_preflight
+from eha_ros.physics.maintenance import (PREFLIGHT_SIGNALS, PREFLIGHT_TICK_S, PreflightCheck,
+                                         run_preflight)
 from eha_ros.physics.params import replace
+from eha_ros.physics.plant import Plant
 from eha_ros.physics.stability import DT_S
 from eha_ros.training.preflight import case_params, cases
 
@@ -50,6 +55,21 @@ def _check(p, seed, dt, integrator, cd_factor):
     t = time.perf_counter()
     rec = run_preflight(p, seed=seed, dt_s=dt, integrator=integrator)
     return rec, time.perf_counter() - t
+
+
+def _tick_by_tick(p, seed):
+    """The reference check as the plant node steps it: one :meth:`Plant.advance` per tick."""
+    t = time.perf_counter()
+    check = PreflightCheck(int(round(PREFLIGHT_TICK_S * 1e9)), p.current_limit_a)
+    plant = Plant(p, dt_s=DT_S, seed=seed)
+    steps = int(round(PREFLIGHT_TICK_S / DT_S))
+    out = {k: np.empty(check.n_ticks) for k in PREFLIGHT_SIGNALS}
+    for k in range(check.n_ticks):
+        plant.advance(float(check.command_a[k]), steps)
+        snap = plant.snapshot()
+        for name in PREFLIGHT_SIGNALS:
+            out[name][k] = snap[name]
+    return out, time.perf_counter() - t
 
 
 def main(argv=None) -> dict:
@@ -77,11 +97,17 @@ def main(argv=None) -> dict:
     flips = {k: 0 for k in variants}
     wall = {k: 0.0 for k in variants}
     wall_ref = 0.0
+    wall_ticks = 0.0
+    identical = True
+    _tick_by_tick(p0, 0)
     for case in case_list:
         p, seed = case_params(case), case[1]
         cond = mean_conditions(measure_conditions(p, seed, CONDITION_READINGS))
         rec, w = _check(p, seed, DT_S, 'explicit', 1.0)
         wall_ref += w
+        ticks, w = _tick_by_tick(p, seed)
+        wall_ticks += w
+        identical &= all(np.array_equal(ticks[k], rec[k]) for k in PREFLIGHT_SIGNALS)
         ref = model.estimate(rec, cond)
         for k, (dt, integ, cd) in variants.items():
             rec, w = _check(p, seed, dt, integ, cd)
@@ -92,6 +118,9 @@ def main(argv=None) -> dict:
             flips[k] += int(bool(e.mismatch) != bool(ref.mismatch))
     out = {'benchmark': 'preflight_integrator', 'stream': STREAM, 'checks': n,
            'reference': 'explicit, dt = 1e-06 s', 'reference_s_per_check': wall_ref / n,
+           'tick_by_tick': {'s_per_check': wall_ticks / n,
+                            'speedup_of_one_call': wall_ticks / wall_ref,
+                            'identical': bool(identical)},
            'shift_unit': "the reference estimate's stated deviation", 'variants': {}}
     for k in variants:
         s = np.abs(np.array(shifts[k]))

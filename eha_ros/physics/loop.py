@@ -55,7 +55,9 @@ def diverged(status: int, t_s: float) -> SimulationDiverged:
 Clock = namedtuple('Clock', 'n0 n_steps dt dt_ns noise noise_dt substeps')
 #: The controller (state ``ctrl``, see :func:`pid`) every ``steps_per_tick`` steps against the
 #: command ``(kind, args, com_t, com_v)``; every ``rec_every``-th tick, the first after
-#: ``rec_wait`` unrecorded ticks, recorded into ``rec`` from its row 0.
+#: ``rec_wait`` unrecorded ticks, recorded into ``rec`` from its row 0.  An empty ``ctrl``: no
+#: controller, the command is the coil current command itself [A] (a scripted current, as a
+#: check drives the valve: :meth:`.plant.Plant.advance_currents`).
 ClosedLoop = namedtuple('ClosedLoop', 'ctrl kind args com_t com_v steps_per_tick rec_every '
                         'rec_wait rec')
 #: The open loop: no controller ticks, nothing recorded (the arrays are never read).
@@ -334,7 +336,10 @@ def advance(s, i_cmd, p, clock, loop, p12_fn, flows_fn, data, split):
                 until_tick = steps_per_tick
                 t = (n * dt_ns) * 1e-9
                 r = command_value(kind, args, com_t, com_v, t)
-                i_cmd = pid(ctrl, r - quantise(surf, q), period, inv_period, p)
+                if ctrl.size > 0:
+                    i_cmd = pid(ctrl, r - quantise(surf, q), period, inv_period, p)
+                else:  # no controller: the command is the current
+                    i_cmd = r
                 if until_rec == 0:
                     until_rec = rec_every
                     _save(s, y, xf, vf, xs, vs, p1t, p2t, p1, p2, xj, vj, surf, qj, i, f,

@@ -282,20 +282,17 @@ def preflight_command(n_ticks: int, tick_s: float, current_limit_a: float) -> np
 
 def run_preflight(params: PlantParams, seed: int = 0, tick_s: float = PREFLIGHT_TICK_S,
                   dt_s: float = 1e-6, fluid=None, integrator: str = 'explicit') -> dict:
-    """The pre-flight check on the plant alone, as the plant node runs it tick by tick: arrays
-    (one value per tick, the state at the tick's end) of ``command_a`` and
-    :data:`PREFLIGHT_SIGNALS`.  Training data for :mod:`eha_ros.health.preflight`.  ``fluid``:
-    a surrogate of the fluid-dynamic block (:class:`.loop.FluidBlock`; hf when ``None``);
-    ``integrator`` and ``dt_s``: the plant's (:class:`.plant.Plant`)."""
+    """The pre-flight check on the plant alone: arrays (one value per tick, the state at the
+    tick's end) of ``command_a`` and :data:`PREFLIGHT_SIGNALS`, bit for bit what the plant node
+    gives running it tick by tick, in one kernel call (:meth:`.plant.Plant.advance_currents`).
+    Training data for :mod:`eha_ros.health.preflight`.  ``fluid``: a surrogate of the
+    fluid-dynamic block (:class:`.loop.FluidBlock`; hf when ``None``); ``integrator`` and
+    ``dt_s``: the plant's (:class:`.plant.Plant`)."""
     from .plant import Plant
+    from .state import RECORD_FIELDS
     check = PreflightCheck(int(round(tick_s * 1e9)), params.current_limit_a)
     plant = Plant(params, dt_s=dt_s, seed=seed, fluid=fluid, integrator=integrator)
-    steps = int(round(tick_s / dt_s))
-    out = {k: np.empty(check.n_ticks) for k in PREFLIGHT_SIGNALS}
-    for k in range(check.n_ticks):
-        plant.advance(float(check.command_a[k]), steps)
-        s = plant.snapshot()
-        for name in PREFLIGHT_SIGNALS:
-            out[name][k] = s[name]
+    rec = plant.advance_currents(check.command_a, int(round(tick_s / dt_s)))
+    out = {k: rec[:, RECORD_FIELDS.index(k)].copy() for k in PREFLIGHT_SIGNALS}
     out['command_a'] = check.command_a.copy()
     return out

@@ -34,7 +34,7 @@ import time
 
 import numpy as np
 
-from .commands import Scenario, get_scenario
+from .commands import COM, Scenario, get_scenario
 from .events import EventSchedule
 from .jack import quantise
 from .loop import (OPEN_LOOP, Clock, ClosedLoop, FluidBlock, diverged, fluid_kernels, pid,
@@ -154,6 +154,40 @@ class Plant:
         self.steps += done
         if status:
             raise diverged(status, self.time_s)
+
+    def advance_currents(self, currents_a, steps_per_tick: int) -> np.ndarray:
+        """Advance one tick of ``steps_per_tick`` steps per current command of
+        ``currents_a`` [A], each held over its tick, in one kernel call: the same states, bit
+        for bit, as :meth:`advance` called once per tick.  Returns the record
+        (:data:`.state.RECORD_FIELDS`, one row per tick: the state at the tick's end, its
+        time, and in ``command_m`` and ``current_command_a`` the current held over it)."""
+        cur = np.ascontiguousarray(currents_a, dtype=float)
+        if cur.ndim != 1 or cur.size == 0 or not np.all(np.isfinite(cur)):
+            raise ParameterError('current commands must be a non-empty 1-D array of finite '
+                                 'values [A]')
+        n, steps = cur.size, int(steps_per_tick)
+        if steps < 1:
+            raise ParameterError(f'steps_per_tick = {steps_per_tick} must be at least 1')
+        tick_ns = steps * self.dt_ns
+        t0 = self.steps * self.dt_ns
+        # tick k falls due at t0 + k tick_ns; its current is due half a tick before, so that
+        # the kernel's table lookup (the value last due) never hangs on a rounding of the time
+        com_t = (t0 + (np.arange(n) - 0.5) * tick_ns) * 1e-9
+        rec = np.full((n, N_REC), np.nan)
+        noise = self.noise.samples_until((self.steps + n * steps) * self.dt_s)
+        clock = Clock(self.steps, n * steps, self.dt_s, self.dt_ns, noise,
+                      self.params.noise_sample_time_s, self.substeps)
+        loop = ClosedLoop(np.zeros(0), COM, np.zeros(8), com_t, cur, steps, 1, 1, rec)
+        status, done, rows, i_cmd = run(self.state, 0.0, self.params, clock, loop,
+                                        *self._kernels)
+        self.steps += done
+        if status:
+            raise diverged(status, self.time_s)
+        record(rec, rows, self.time_s, i_cmd, i_cmd, self.state, self.params)
+        # each row's commands: the current held over its tick (the kernel writes the next's)
+        rec[:, RECORD_FIELDS.index('command_m')] = cur
+        rec[:, RECORD_FIELDS.index('current_command_a')] = cur
+        return rec
 
     def hold(self, n_steps: int) -> None:
         """Advance the clock ``n_steps`` steps with the actuator frozen (a valve test: the jack
