@@ -16,9 +16,13 @@ score, the cases whose refusal flips, and the wall time of the checks against th
 (``speedup``, one process, after a warm-up that compiles).  The reference also runs as the
 plant node runs it, one kernel call per tick (``tick_by_tick``): its wall time against the one
 call of :func:`run_preflight` (``speedup_of_one_call``) and whether every signal is the same
-bit for bit.  The load averages come with it.
+bit for bit.  With ``--converged-dt`` (default 50 ns) the check also runs at that explicit
+step, converged in it, and every variant, the reference too, gets its shift from that
+check's estimate (``shift_rms_vs_converged``, same unit): which of the two schemes is nearer
+the plant's own solution.  The load averages come with it.
 
     python bench/preflight_integrator.py [--n 16] [--split-dts 1e-5,2e-5,2.5e-5]
+        [--converged-dt 5e-8]
 """
 
 import argparse
@@ -77,6 +81,8 @@ def main(argv=None) -> dict:
     ap.add_argument('--n', type=int, default=16, help='fleet checks')
     ap.add_argument('--split-dts', default='1e-5,2e-5,2.5e-5',
                     help='steps [s] of the split integrator (comma-separated)')
+    ap.add_argument('--converged-dt', type=float, default=5e-8,
+                    help='explicit step [s] of the converged check (0: none)')
     ap.add_argument('--smoke', action='store_true', help='one check at one step: a check')
     a = ap.parse_args(argv)
     split_dts = [float(x) for x in a.split_dts.split(',') if x.strip()]
@@ -88,11 +94,16 @@ def main(argv=None) -> dict:
     load_before = os.getloadavg()
     model = load_faults()
     variants = _variants(split_dts)
+    conv_key = None
+    if a.converged_dt > 0:
+        conv_key = f'explicit@dt={a.converged_dt:g}'
+        variants[conv_key] = (a.converged_dt, 'explicit', 1.0)
     case_list = cases(n, STREAM, fleet=True)
     p0 = case_params(case_list[0])
     for dt, integ in {(DT_S, 'explicit')} | {v[:2] for v in variants.values()}:
         run_preflight(p0, seed=0, dt_s=dt, integrator=integ)   # compiles (or loads) first
     shifts = {k: [] for k in variants}
+    to_conv = {k: [] for k in ['reference', *variants]}
     ood = {k: [] for k in variants}
     flips = {k: 0 for k in variants}
     wall = {k: 0.0 for k in variants}
@@ -109,13 +120,19 @@ def main(argv=None) -> dict:
         wall_ticks += w
         identical &= all(np.array_equal(ticks[k], rec[k]) for k in PREFLIGHT_SIGNALS)
         ref = model.estimate(rec, cond)
+        est = {'reference': ref}
         for k, (dt, integ, cd) in variants.items():
             rec, w = _check(p, seed, dt, integ, cd)
             wall[k] += w
-            e = model.estimate(rec, cond)
+            e = est[k] = model.estimate(rec, cond)
             shifts[k].append([(e.values[f] - ref.values[f]) / ref.stds[f] for f in FAULT_NAMES])
             ood[k].append(e.ood_score - ref.ood_score)
             flips[k] += int(bool(e.mismatch) != bool(ref.mismatch))
+        if conv_key:
+            c = est[conv_key]
+            for k, e in est.items():
+                to_conv[k].append([(e.values[f] - c.values[f]) / ref.stds[f]
+                                   for f in FAULT_NAMES])
     out = {'benchmark': 'preflight_integrator', 'stream': STREAM, 'checks': n,
            'reference': 'explicit, dt = 1e-06 s', 'reference_s_per_check': wall_ref / n,
            'tick_by_tick': {'s_per_check': wall_ticks / n,
@@ -131,6 +148,11 @@ def main(argv=None) -> dict:
             'ood_score_shift_max': float(np.max(np.abs(ood[k]))),
             'refusal_flips': flips[k],
             'speedup': wall_ref / wall[k]}
+    if conv_key:
+        out['converged'] = conv_key
+        out['shift_rms_vs_converged'] = {
+            k: dict(zip(FAULT_NAMES, np.round(np.sqrt((np.array(v) ** 2).mean(axis=0)),
+                                              4).tolist())) for k, v in to_conv.items()}
     out.update(load_before=load_before, load_after=os.getloadavg(), smoke=bool(a.smoke))
     print(json.dumps(out, indent=1))
     return out
