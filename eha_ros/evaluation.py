@@ -197,11 +197,11 @@ def noise_free(p, scenario, surrogates, large_dts=(), keep_runs=False, split_dts
     conv = None
     if converged_dt is not None:
         conv = run(p, scenario, dt=float(converged_dt))
-        e = _errors(run(p, scenario, dt=2.0 * float(converged_dt)), conv)
+        check = _against(run(p, scenario, dt=2.0 * float(converged_dt)), conv,
+                         {q: SETTLED_FRACTION * b for q, b in out['bound'].items()})
         out['converged'] = {'dt_s': float(converged_dt), 'hf': _against(ref, conv, out['bound']),
-                            'check': e, 'settled': bool(
-                                e['jack'] <= SETTLED_FRACTION * out['bound']['jack']
-                                and e['p12'] <= SETTLED_FRACTION * out['bound']['p12'])}
+                            'check': {q: check[q] for q in ('jack', 'p12')},
+                            'settled': check['meets']}
     for name, s in [('hf', None)] + list(surrogates.items()):
         runs = {} if name == 'hf' else {name: (None, EXPLICIT)}
         if name == 'hf' or name in DYNAMIC_MODELS:
@@ -214,10 +214,9 @@ def noise_free(p, scenario, surrogates, large_dts=(), keep_runs=False, split_dts
                 out['models'][key] = {'error': f'{type(exc).__name__}: {exc}'}
                 continue
             kept[key] = r
-            e = _errors(r, ref)
-            meets = bool(e['jack'] <= out['bound']['jack'] and e['p12'] <= out['bound']['p12'])
-            out['models'][key] = model_result(e['jack'], e['p12'], meets, features(r), f_ref,
-                                              spread, _cost(r))
+            e = _against(r, ref, out['bound'])
+            out['models'][key] = model_result(e['jack'], e['p12'], e['meets'], features(r),
+                                              f_ref, spread, _cost(r))
             if conv is not None:
                 out['models'][key]['converged'] = _against(r, conv, out['bound'])
     if keep_runs:

@@ -177,7 +177,7 @@ class Plant:
         noise = self.noise.samples_until((self.steps + n * steps) * self.dt_s)
         clock = Clock(self.steps, n * steps, self.dt_s, self.dt_ns, noise,
                       self.params.noise_sample_time_s, self.substeps)
-        loop = ClosedLoop(np.zeros(0), COM, np.zeros(8), com_t, cur, steps, 1, 1, rec)
+        loop = ClosedLoop(np.zeros(0), COM, OPEN_LOOP.args, com_t, cur, steps, 1, 1, rec)
         status, done, rows, i_cmd = run(self.state, 0.0, self.params, clock, loop,
                                         *self._kernels)
         self.steps += done

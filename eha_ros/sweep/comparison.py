@@ -94,7 +94,7 @@ def noise_free_results(table, wear_points: dict, keep_signals: bool = False) -> 
                'hf_cost_s_per_s': hf['wall_cost_s_per_s'], 'models': {}}
         if hf.get('converged_settled') is not None:
             res['converged'] = {
-                'hf': _against(hf), 'settled': hf['converged_settled'],
+                'hf': _converged(hf), 'settled': hf['converged_settled'],
                 'check': {'jack': hf['converged_check_jack'], 'p12': hf['converged_check_p12']}}
         if keep_signals:
             res['signals'] = {'hf': _signals(hf)}
@@ -110,14 +110,14 @@ def noise_free_results(table, wear_points: dict, keep_signals: bool = False) -> 
                 r['jack_rel_error'], r['p12_rel_error'], r['meets_bounds'],
                 {k: r[k] for k in feats}, f_ref, spread, r['wall_cost_s_per_s'])
             if 'converged' in res:
-                res['models'][name]['converged'] = _against(r)
+                res['models'][name]['converged'] = _converged(r)
             if keep_signals and '@' not in name:
                 res['signals'][name] = _signals(r)
         out[key] = res
     return out
 
 
-def _against(row) -> dict:
+def _converged(row) -> dict:
     """A row's errors against the converged hf, as :func:`evaluation.noise_free` gives them."""
     return {'jack': row['converged_jack'], 'p12': row['converged_p12'],
             'meets': row['meets_bounds_converged']}

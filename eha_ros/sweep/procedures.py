@@ -43,6 +43,13 @@ def _errors(r, ref) -> dict:
             'p12_rel_error': relative_error(r['p12_pa'], ref['p12_pa'])}
 
 
+def _converged_columns(c) -> dict:
+    """A run's columns against the converged hf (``c`` from :func:`noise_free`; none
+    without)."""
+    return {} if c is None else {'converged_jack': c['jack'], 'converged_p12': c['p12'],
+                                 'meets_bounds_converged': c['meets']}
+
+
 class ScenarioProcedure(Procedure):
     """The closed loop on the spec's scenario (see the module's docstring)."""
 
@@ -152,20 +159,15 @@ class ScenarioProcedure(Procedure):
                   'bound_jack': out['bound']['jack'], 'bound_p12': out['bound']['p12'],
                   **{f'spread_{f}': v for f, v in out['feature_spread'].items()}}
         conv = out.get('converged')
-
-        def against(c):
-            return {} if c is None else {'converged_jack': c['jack'], 'converged_p12': c['p12'],
-                                         'meets_bounds_converged': c['meets']}
+        hf_conv = {} if conv is None else {
+            **_converged_columns(conv['hf']), 'converged_check_jack': conv['check']['jack'],
+            'converged_check_p12': conv['check']['p12'], 'converged_settled': conv['settled']}
         duration = float(get_scenario(point.scenario).duration_s)
         runs = out.get('runs', {})
         rows = []
         for c in point.cases:
             if c.model == 'hf' and c.dt_s == self.spec.dt_s:
-                row = self._row(c, {**out['hf_features'], **common, **against(
-                    conv and conv['hf']), **({} if conv is None else {
-                        'converged_check_jack': conv['check']['jack'],
-                        'converged_check_p12': conv['check']['p12'],
-                        'converged_settled': conv['settled']})}, 'ok', None,
+                row = self._row(c, {**out['hf_features'], **common, **hf_conv}, 'ok', None,
                                 self._signals(runs['hf'].data) if runs else None)
                 row['wall_cost_s_per_s'] = out['hf_cost_s_per_s']
                 if runs:
@@ -182,7 +184,8 @@ class ScenarioProcedure(Procedure):
                     row = self._row(c, {**r['features'], 'jack_rel_error': r['jack'],
                                         'p12_rel_error': r['p12'], **common,
                                         'meets_bounds': r['meets'],
-                                        **against(r.get('converged'))}, 'ok', None,
+                                        **_converged_columns(r.get('converged'))}, 'ok',
+                                    None,
                                     self._signals(runs[key].data) if runs else None)
                     row['wall_cost_s_per_s'] = r['cost_s_per_s']
             if row.get('wall_cost_s_per_s') is not None:
